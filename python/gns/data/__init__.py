@@ -1,0 +1,54 @@
+"""Dataset readers, validation, statistics and conversion (see shared/design/formats.md).
+
+    open_dataset(path, split)   -> Dataset of Trajectory (positions (T, N, D) float32, ...)
+    training_windows / pack_batches -> shuffled windows and particle-budget batches
+    compute_statistics          -> per-frame velocity / acceleration statistics
+    validate_dataset            -> every problem found in a dataset
+    convert                     -> the dataset in another layout, written atomically
+
+Nothing here imports gns._core: the readers are plain Python + numpy + h5py.
+"""
+
+from gns.data.convert import convert
+from gns.data.crc32c import crc32c, masked_crc32c
+from gns.data.dataset import Dataset, available_splits, open_dataset
+from gns.data.errors import DatasetError
+from gns.data.metadata import Metadata
+from gns.data.stats import Statistics, StatisticsAccumulator, compute_statistics
+from gns.data.trajectory import Trajectory
+from gns.data.validate import Problem, validate_dataset
+from gns.data.windows import (
+    INPUT_SEQUENCE_LENGTH,
+    Batch,
+    Window,
+    collate,
+    pack_batches,
+    shuffle_buffer,
+    training_windows,
+    trajectory_windows,
+)
+
+__all__ = [
+    "INPUT_SEQUENCE_LENGTH",
+    "Batch",
+    "Dataset",
+    "DatasetError",
+    "Metadata",
+    "Problem",
+    "Statistics",
+    "StatisticsAccumulator",
+    "Trajectory",
+    "Window",
+    "available_splits",
+    "collate",
+    "compute_statistics",
+    "convert",
+    "crc32c",
+    "masked_crc32c",
+    "open_dataset",
+    "pack_batches",
+    "shuffle_buffer",
+    "trajectory_windows",
+    "training_windows",
+    "validate_dataset",
+]

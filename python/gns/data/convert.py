@@ -1,0 +1,166 @@
+"""`convert`: rewrite a dataset in another layout, atomically.
+
+Targets: "deepmind" (metadata.json + {split}.tfrecord, checksummed), "npz" (geoelements variant A),
+"h5" (ours: geoelements' h5 plus `step_context`) and "lagrangebench". The whole output folder is
+built under a temporary name and renamed into place at the end, so a failure leaves nothing.
+
+Global features move between the two ways layouts store them: DeepMind has only a per-frame
+step_context, geoelements only a per-trajectory material_property. A constant one-feature
+step_context becomes a scalar material_property and back; anything else that a target cannot
+hold is an error, never silently dropped.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from gns.data.atomic import atomic_folder
+from gns.data.dataset import available_splits, open_dataset
+from gns.data.deepmind import write_tfrecord
+from gns.data.errors import DatasetError
+from gns.data.h5 import write_h5
+from gns.data.metadata import Metadata
+from gns.data.npz import write_npz
+from gns.data.stats import StatisticsAccumulator
+from gns.data.trajectory import Trajectory
+
+TARGETS = ("deepmind", "npz", "h5", "lagrangebench")
+_SUFFIX = {"deepmind": ".tfrecord", "npz": ".npz", "h5": ".h5", "lagrangebench": ".h5"}
+
+
+def _constant_scalar(context: np.ndarray) -> bool:
+    return context.shape[1] == 1 and bool(np.all(context == context[0]))
+
+
+def adapt(trajectory: Trajectory, to: str) -> Trajectory:
+    """The trajectory with its global features stored the way layout `to` can hold them."""
+    context, material = trajectory.step_context, trajectory.material_property
+
+    def fail(problem: str) -> DatasetError:
+        return DatasetError(trajectory.source, problem, trajectory.key)
+
+    if to == "deepmind" and material is not None:
+        if material.ndim != 0:
+            raise fail("a per-particle material_property has no place in the DeepMind layout")
+        if context is None:
+            context = np.full((trajectory.num_frames, 1), material, dtype=np.float32)
+        elif not (_constant_scalar(context) and context[0, 0] == material):
+            raise fail("DeepMind layout cannot hold both step_context and material_property")
+        material = None
+    elif to == "npz" and context is not None:
+        if not _constant_scalar(context):
+            raise fail("the npz layout cannot hold a per-frame step_context; use deepmind or h5")
+        if material is None:
+            material = context[0, 0].reshape(())
+        elif not (material.ndim == 0 and context[0, 0] == material):
+            raise fail("npz layout cannot hold both step_context and material_property")
+        context = None
+    elif to == "lagrangebench" and (context is not None or material is not None):
+        raise fail("LagrangeBench h5 cannot hold step_context or material_property")
+    if context is trajectory.step_context and material is trajectory.material_property:
+        return trajectory
+    return Trajectory(
+        trajectory.positions,
+        trajectory.particle_type,
+        context,
+        material,
+        key=trajectory.key,
+        source=trajectory.source,
+    )
+
+
+def _writer(to: str) -> Callable[[Path, Iterable[Trajectory]], int]:
+    if to == "deepmind":
+        return write_tfrecord
+    if to == "npz":
+        return write_npz
+    if to == "h5":
+        return write_h5
+    return lambda path, trajectories: write_h5(path, trajectories, layout="lagrangebench")
+
+
+def convert(
+    src: str | os.PathLike[str],
+    dst: str | os.PathLike[str],
+    to: str,
+    *,
+    splits: Iterable[str] | None = None,
+) -> dict[str, int]:
+    """Write the dataset at `src` to the new folder `dst` in layout `to`.
+
+    Returns the number of trajectories written per split. Missing statistics are computed from
+    the train split while it is written. `dst` must not exist or be an empty folder.
+    """
+    if to not in TARGETS:
+        raise ValueError(f"unknown target layout {to!r}; expected one of {TARGETS}")
+    chosen = list(splits) if splits is not None else available_splits(src)
+    if not chosen:
+        raise DatasetError(src, "no splits to convert")
+    metadata: Metadata | None = None
+    counts: dict[str, int] = {}
+    accumulator: StatisticsAccumulator | None = None
+    has_context = has_material = False
+    try:
+        with atomic_folder(dst) as tmp:
+            for split in chosen:
+                dataset = open_dataset(src, split)
+                metadata = metadata or dataset.metadata
+                if split == "train":
+                    accumulator = StatisticsAccumulator(metadata.kinematic_particle_types)
+
+                def stream(
+                    dataset: Iterable[Trajectory] = dataset,
+                    accumulator: StatisticsAccumulator | None = accumulator,
+                    split: str = split,
+                ) -> Iterator[Trajectory]:
+                    nonlocal has_context, has_material
+                    for trajectory in dataset:
+                        adapted = adapt(trajectory, to)
+                        has_context |= adapted.step_context is not None
+                        has_material |= adapted.material_property is not None
+                        if split == "train" and accumulator is not None:
+                            accumulator.add(adapted)
+                        yield adapted
+
+                counts[split] = _writer(to)(tmp / f"{split}{_SUFFIX[to]}", stream())
+            assert metadata is not None
+            metadata = _target_metadata(metadata, accumulator, has_context, has_material)
+            metadata.write_json(tmp / "metadata.json")
+    except FileExistsError as err:
+        raise DatasetError(dst, str(err)) from err
+    return counts
+
+
+def _target_metadata(
+    metadata: Metadata,
+    accumulator: StatisticsAccumulator | None,
+    has_context: bool,
+    has_material: bool,
+) -> Metadata:
+    stats = accumulator.result() if accumulator is not None else None
+    if not metadata.has_statistics:
+        if stats is None:
+            raise DatasetError(
+                metadata.source, "metadata has no statistics and there is no train split"
+            )
+        metadata = metadata.replace(
+            vel_mean=tuple(stats.vel_mean.tolist()),
+            vel_std=tuple(stats.vel_std.tolist()),
+            acc_mean=tuple(stats.acc_mean.tolist()),
+            acc_std=tuple(stats.acc_std.tolist()),
+        )
+    if not has_context:
+        metadata = metadata.replace(context_mean=None, context_std=None)
+    elif metadata.context_mean is None and stats is not None and stats.context_mean is not None:
+        assert stats.context_std is not None
+        metadata = metadata.replace(
+            context_mean=tuple(stats.context_mean.tolist()),
+            context_std=tuple(stats.context_std.tolist()),
+        )
+    if has_material and not metadata.material_feature_len:
+        metadata = metadata.replace(material_feature_len=1)
+    return metadata

@@ -1,0 +1,534 @@
+//! Cell-list search: a uniform grid of cell size >= radius, rebuilt each call by counting sort
+//! from the graph's actual bounding box, with positions copied in cell order (structure of
+//! arrays) so that each query scans a few contiguous runs instead of 9 or 27 scattered cells.
+
+use crate::graph::{accept_sorted, Ctx, Found, Prepared};
+
+/// The grid declines (and the caller uses the k-d tree) when it would need more cells than
+/// this many per particle: an outlier far away must not allocate billions of empty cells.
+const MAX_CELLS_PER_PARTICLE: usize = 4;
+const MIN_CELL_BUDGET: usize = 4096;
+
+pub(crate) struct Grid<const D: usize> {
+    len: usize,
+    /// Cells per axis; the last axis varies fastest in a cell id.
+    n: [usize; D],
+    lo: [f64; D],
+    inv_cell: [f64; D],
+    periodic: [bool; D],
+    /// cell_start[c]..cell_start[c + 1] are the sorted positions of cell c.
+    cell_start: Vec<u32>,
+    /// Sorted position -> cell id.
+    cell_of: Vec<u32>,
+    /// Sorted position -> global particle index.
+    order: Vec<u32>,
+    /// Coordinates in sorted order, axis-major: sorted[d * len + p].
+    sorted: Vec<f64>,
+    /// Scratch for the counting sort.
+    cursor: Vec<u32>,
+}
+
+impl<const D: usize> Default for Grid<D> {
+    fn default() -> Self {
+        Grid {
+            len: 0,
+            n: [1; D],
+            lo: [0.0; D],
+            inv_cell: [0.0; D],
+            periodic: [false; D],
+            cell_start: Vec::new(),
+            cell_of: Vec::new(),
+            order: Vec::new(),
+            sorted: Vec::new(),
+            cursor: Vec::new(),
+        }
+    }
+}
+
+/// Up to three distinct neighbouring cells along one axis (fewer at a wall, or on a periodic
+/// axis of one or two cells where -1 and +1 are the same cell).
+#[derive(Clone, Copy)]
+struct AxisCells {
+    cells: [usize; 3],
+    len: usize,
+}
+
+impl AxisCells {
+    fn new(c: usize, n: usize, periodic: bool) -> Self {
+        let mut out = AxisCells {
+            cells: [0; 3],
+            len: 0,
+        };
+        if periodic {
+            let mut cand = [(c + n - 1) % n, c, (c + 1) % n];
+            cand.sort_unstable();
+            for x in cand {
+                if out.len == 0 || out.cells[out.len - 1] != x {
+                    out.cells[out.len] = x;
+                    out.len += 1;
+                }
+            }
+        } else {
+            for x in c.saturating_sub(1)..=(c + 1).min(n - 1) {
+                out.cells[out.len] = x;
+                out.len += 1;
+            }
+        }
+        out
+    }
+
+    fn as_slice(&self) -> &[usize] {
+        &self.cells[..self.len]
+    }
+
+    /// Runs of consecutive cells, as inclusive (first, last) pairs: contiguous in memory.
+    fn runs(&self) -> ([(usize, usize); 3], usize) {
+        let mut runs = [(0, 0); 3];
+        let mut k = 0;
+        for &c in self.as_slice() {
+            if k > 0 && runs[k - 1].1 + 1 == c {
+                runs[k - 1].1 = c;
+            } else {
+                runs[k] = (c, c);
+                k += 1;
+            }
+        }
+        (runs, k)
+    }
+}
+
+impl<const D: usize> Grid<D> {
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Indexes particles start..end; false when the grid would be far too sparse.
+    pub fn rebuild(&mut self, prepared: &Prepared, start: usize, end: usize) -> bool {
+        let metric = &prepared.metric;
+        let coords = &prepared.coords[start * D..end * D];
+        let len = end - start;
+        self.len = len;
+        let mut lo = [f64::INFINITY; D];
+        let mut hi = [f64::NEG_INFINITY; D];
+        for x in coords.chunks_exact(D) {
+            for d in 0..D {
+                lo[d] = lo[d].min(x[d]);
+                hi[d] = hi[d].max(x[d]);
+            }
+        }
+        let mut cells = 1.0f64;
+        for d in 0..D {
+            self.periodic[d] = metric.periodic[d];
+            if metric.periodic[d] {
+                // Whole cells that tile the box, each at least `reach` wide.
+                let l = metric.lengths[d];
+                let n = (l / metric.reach).floor().max(1.0);
+                self.n[d] = n as usize;
+                self.lo[d] = 0.0;
+                self.inv_cell[d] = n / l;
+            } else {
+                let extent = if len == 0 { 0.0 } else { hi[d] - lo[d] };
+                let n = (extent / metric.reach).floor() + 1.0;
+                // An infinite extent (coordinates near f64::MAX) is caught by the budget below.
+                self.n[d] = if n.is_finite() {
+                    n.min(1e18) as usize
+                } else {
+                    usize::MAX
+                };
+                self.lo[d] = if len == 0 { 0.0 } else { lo[d] };
+                self.inv_cell[d] = 1.0 / metric.reach;
+            }
+            cells *= if n_is_huge(self.n[d]) {
+                f64::INFINITY
+            } else {
+                self.n[d] as f64
+            };
+        }
+        let budget = (MAX_CELLS_PER_PARTICLE * len).max(MIN_CELL_BUDGET);
+        if cells > budget as f64 {
+            return false;
+        }
+        let n_cells = cells as usize;
+
+        // Counting sort by cell: stable, so each cell lists its particles by index.
+        self.cell_start.clear();
+        self.cell_start.resize(n_cells + 1, 0);
+        self.cell_of.clear();
+        self.cell_of.reserve(len);
+        for x in coords.chunks_exact(D) {
+            let c = self.cell_id(x);
+            self.cell_of.push(c as u32);
+            self.cell_start[c + 1] += 1;
+        }
+        for c in 0..n_cells {
+            self.cell_start[c + 1] += self.cell_start[c];
+        }
+        self.cursor.clear();
+        self.cursor.extend_from_slice(&self.cell_start[..n_cells]);
+        self.order.clear();
+        self.order.resize(len, 0);
+        self.sorted.clear();
+        self.sorted.resize(D * len, 0.0);
+        let mut cell_sorted = vec![0u32; len];
+        for (k, x) in coords.chunks_exact(D).enumerate() {
+            let c = self.cell_of[k] as usize;
+            let p = self.cursor[c] as usize;
+            self.cursor[c] += 1;
+            self.order[p] = (start + k) as u32;
+            cell_sorted[p] = c as u32;
+            for d in 0..D {
+                self.sorted[d * len + p] = x[d];
+            }
+        }
+        self.cell_of = cell_sorted;
+        true
+    }
+
+    #[inline]
+    fn cell_id(&self, x: &[f64]) -> usize {
+        let mut id = 0usize;
+        for d in 0..D {
+            let c = (((x[d] - self.lo[d]) * self.inv_cell[d]) as usize).min(self.n[d] - 1);
+            id = id * self.n[d] + c;
+        }
+        id
+    }
+
+    /// The contiguous runs of sorted positions (a, b) that can hold neighbours of the
+    /// particles of cell c: up to 3 (2D) or 9 (3D) rows, split in two where a periodic row wraps.
+    fn runs_of_cell(&self, mut id: usize) -> ([(usize, usize); 18], usize) {
+        let mut c = [0usize; D];
+        for d in (0..D).rev() {
+            c[d] = id % self.n[d];
+            id /= self.n[d];
+        }
+        let (inner, n_inner) = AxisCells::new(c[D - 1], self.n[D - 1], self.periodic[D - 1]).runs();
+        let mut runs = [(0, 0); 18];
+        let mut k = 0;
+        let mut visit_row = |row: usize| {
+            let base = row * self.n[D - 1];
+            for &(a, b) in &inner[..n_inner] {
+                let (lo, hi) = (self.cell_start[base + a], self.cell_start[base + b + 1]);
+                if lo < hi {
+                    runs[k] = (lo as usize, hi as usize);
+                    k += 1;
+                }
+            }
+        };
+        let a0 = AxisCells::new(c[0], self.n[0], self.periodic[0]);
+        if D == 2 {
+            a0.as_slice().iter().for_each(|&c0| visit_row(c0));
+        } else {
+            let a1 = AxisCells::new(c[1], self.n[1], self.periodic[1]);
+            for &c0 in a0.as_slice() {
+                for &c1 in a1.as_slice() {
+                    visit_row(c0 * self.n[1] + c1);
+                }
+            }
+        }
+        (runs, k)
+    }
+
+    /// Calls `f(p0, p1, runs)` for each stretch p0..p1 of the queries lo..hi that share a
+    /// cell: the stencil is worked out once per cell, not once per query.
+    #[inline(always)]
+    fn for_each_cell(
+        &self,
+        lo: usize,
+        hi: usize,
+        mut f: impl FnMut(usize, usize, &[(usize, usize)]),
+    ) {
+        let mut p = lo;
+        while p < hi {
+            let c = self.cell_of[p] as usize;
+            let end = (self.cell_start[c + 1] as usize).min(hi);
+            let (runs, k) = self.runs_of_cell(c);
+            f(p, end, &runs[..k]);
+            p = end;
+        }
+    }
+
+    #[inline(always)]
+    fn query_point(&self, p: usize) -> [f64; D] {
+        let mut q = [0.0; D];
+        for (d, qd) in q.iter_mut().enumerate() {
+            *qd = self.sorted[d * self.len + p];
+        }
+        q
+    }
+
+    #[inline(always)]
+    pub fn count_range(&self, lo: usize, hi: usize, ctx: &Ctx, emit: &mut impl FnMut(usize, u32)) {
+        let m = &ctx.metric;
+        // The query itself is always within its own runs, at distance 0.
+        let minus_self = (!ctx.self_edges) as u32;
+        self.for_each_cell(lo, hi, |p0, p1, runs| {
+            for p in p0..p1 {
+                let q = self.query_point(p);
+                let mut count = 0u32;
+                for &(a, b) in runs {
+                    if m.any_periodic {
+                        count += (a..b)
+                            .map(|k| (m.d2(&q, &self.query_point(k)) <= m.r2) as u32)
+                            .sum::<u32>();
+                        continue;
+                    }
+                    #[cfg(target_arch = "x86_64")]
+                    if ctx.avx2 {
+                        // SAFETY: ctx.avx2 is only set when the CPU has AVX2.
+                        count +=
+                            unsafe { count_run_avx2::<D>(&self.sorted, self.len, a, b, &q, m.r2) };
+                        continue;
+                    }
+                    count += count_run::<D>(&self.sorted, self.len, a, b, &q, m.r2);
+                }
+                emit(self.order[p] as usize, count - minus_self);
+            }
+        });
+    }
+
+    #[inline(always)]
+    pub fn collect_range(
+        &self,
+        lo: usize,
+        hi: usize,
+        ctx: &Ctx,
+        found: &mut Found,
+        emit: &mut impl FnMut(usize, &mut [u32], &[[i32; 3]]),
+    ) {
+        self.for_each_cell(lo, hi, |p0, p1, runs| {
+            let candidates: usize = runs.iter().map(|&(a, b)| b - a).sum();
+            // Slack of 4: the SIMD compaction stores whole vectors of 4 indices.
+            if found.buf.len() < candidates + 4 {
+                found.buf.resize(candidates + 4, 0);
+            }
+            for p in p0..p1 {
+                let q = self.query_point(p);
+                let i = self.order[p] as usize;
+                if ctx.metric.any_periodic {
+                    found.senders.clear();
+                    found.shifts.clear();
+                    for &(a, b) in runs {
+                        for k in a..b {
+                            let j = self.order[k] as usize;
+                            accept_sorted(ctx, i, j, &q, &self.query_point(k), found);
+                        }
+                    }
+                    emit(i, &mut found.senders, &found.shifts);
+                    continue;
+                }
+                let mut n = 0;
+                let (sorted, order, len, r2) = (&self.sorted, &self.order, self.len, ctx.metric.r2);
+                for &(a, b) in runs {
+                    let out = &mut found.buf[n..];
+                    #[cfg(target_arch = "x86_64")]
+                    if ctx.avx2 {
+                        // SAFETY: ctx.avx2 is only set when the CPU has AVX2.
+                        n +=
+                            unsafe { collect_run_avx2::<D>(sorted, order, len, a, b, &q, r2, out) };
+                        continue;
+                    }
+                    n += collect_run::<D>(sorted, order, len, a, b, &q, r2, out);
+                }
+                if !ctx.self_edges {
+                    // Self-edges are decided by index: drop i itself, keep coincident others.
+                    if let Some(k) = found.buf[..n].iter().position(|&j| j as usize == i) {
+                        found.buf.swap(k, n - 1);
+                        n -= 1;
+                    }
+                }
+                emit(i, &mut found.buf[..n], &[]);
+            }
+        });
+    }
+}
+
+fn n_is_huge(n: usize) -> bool {
+    n > (1usize << 52)
+}
+
+/// Number of points in sorted positions a..b within the radius of q (non-periodic metric).
+/// The arithmetic is exactly the canonical one: (0 + dx^2) + dy^2 (+ dz^2), dx = x_j - x_i.
+#[inline(always)]
+fn count_run<const D: usize>(
+    sorted: &[f64],
+    len: usize,
+    a: usize,
+    b: usize,
+    q: &[f64; D],
+    r2: f64,
+) -> u32 {
+    let xs = &sorted[a..b];
+    let ys = &sorted[len + a..len + b];
+    let mut c = 0u32;
+    if D == 2 {
+        for k in 0..xs.len() {
+            let dx = xs[k] - q[0];
+            let dy = ys[k] - q[1];
+            c += (dx * dx + dy * dy <= r2) as u32;
+        }
+    } else {
+        let zs = &sorted[2 * len + a..2 * len + b];
+        for k in 0..xs.len() {
+            let dx = xs[k] - q[0];
+            let dy = ys[k] - q[1];
+            let dz = zs[k] - q[D - 1];
+            c += (dx * dx + dy * dy + dz * dz <= r2) as u32;
+        }
+    }
+    c
+}
+
+/// Writes the indices of the points of a..b within the radius of q to the front of `out` and
+/// returns how many: a branchless compaction with the same arithmetic as [`count_run`].
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn collect_run<const D: usize>(
+    sorted: &[f64],
+    order: &[u32],
+    len: usize,
+    a: usize,
+    b: usize,
+    q: &[f64; D],
+    r2: f64,
+    out: &mut [u32],
+) -> usize {
+    let xs = &sorted[a..b];
+    let ys = &sorted[len + a..len + b];
+    let ids = &order[a..b];
+    let out = &mut out[..xs.len()];
+    let mut n = 0;
+    if D == 2 {
+        for k in 0..xs.len() {
+            let dx = xs[k] - q[0];
+            let dy = ys[k] - q[1];
+            out[n] = ids[k];
+            n += (dx * dx + dy * dy <= r2) as usize;
+        }
+    } else {
+        let zs = &sorted[2 * len + a..2 * len + b];
+        for k in 0..xs.len() {
+            let dx = xs[k] - q[0];
+            let dy = ys[k] - q[1];
+            let dz = zs[k] - q[D - 1];
+            out[n] = ids[k];
+            n += (dx * dx + dy * dy + dz * dz <= r2) as usize;
+        }
+    }
+    n
+}
+
+/// [`collect_run`] four candidates at a time: compare, then pack the accepted indices to the
+/// front with one byte shuffle. Same arithmetic, same result; `out` needs 4 slots of slack.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+#[allow(clippy::too_many_arguments)]
+unsafe fn collect_run_avx2<const D: usize>(
+    sorted: &[f64],
+    order: &[u32],
+    len: usize,
+    a: usize,
+    b: usize,
+    q: &[f64; D],
+    r2: f64,
+    out: &mut [u32],
+) -> usize {
+    use std::arch::x86_64::*;
+    let m = b - a;
+    assert!(out.len() >= m + 4 && b <= len && order.len() >= b && sorted.len() >= D * len);
+    let ids = order.as_ptr().add(a);
+    let xs = sorted.as_ptr().add(a);
+    let ys = sorted.as_ptr().add(len + a);
+    let zs = sorted.as_ptr().add((D - 1) * len + a);
+    let (qx, qy, qz) = (
+        _mm256_set1_pd(q[0]),
+        _mm256_set1_pd(q[1]),
+        _mm256_set1_pd(q[D - 1]),
+    );
+    let r2v = _mm256_set1_pd(r2);
+    let dst = out.as_mut_ptr();
+    let mut n = 0;
+    let mut k = 0;
+    while k + 4 <= m {
+        let dx = _mm256_sub_pd(_mm256_loadu_pd(xs.add(k)), qx);
+        let dy = _mm256_sub_pd(_mm256_loadu_pd(ys.add(k)), qy);
+        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
+        if D == 3 {
+            let dz = _mm256_sub_pd(_mm256_loadu_pd(zs.add(k)), qz);
+            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
+        }
+        let mask = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as usize;
+        let idv = _mm_loadu_si128(ids.add(k) as *const __m128i);
+        let shuffle = _mm_loadu_si128(PACK[mask].as_ptr() as *const __m128i);
+        _mm_storeu_si128(dst.add(n) as *mut __m128i, _mm_shuffle_epi8(idv, shuffle));
+        n += mask.count_ones() as usize;
+        k += 4;
+    }
+    let tail = &mut out[n..];
+    n + collect_run::<D>(sorted, order, len, a + k, b, q, r2, tail)
+}
+
+/// [`count_run`] four candidates at a time, with the same arithmetic.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,popcnt")]
+#[inline]
+unsafe fn count_run_avx2<const D: usize>(
+    sorted: &[f64],
+    len: usize,
+    a: usize,
+    b: usize,
+    q: &[f64; D],
+    r2: f64,
+) -> u32 {
+    use std::arch::x86_64::*;
+    assert!(b <= len && sorted.len() >= D * len);
+    let m = b - a;
+    let xs = sorted.as_ptr().add(a);
+    let ys = sorted.as_ptr().add(len + a);
+    let zs = sorted.as_ptr().add((D - 1) * len + a);
+    let (qx, qy, qz) = (
+        _mm256_set1_pd(q[0]),
+        _mm256_set1_pd(q[1]),
+        _mm256_set1_pd(q[D - 1]),
+    );
+    let r2v = _mm256_set1_pd(r2);
+    let mut c = 0u32;
+    let mut k = 0;
+    while k + 4 <= m {
+        let dx = _mm256_sub_pd(_mm256_loadu_pd(xs.add(k)), qx);
+        let dy = _mm256_sub_pd(_mm256_loadu_pd(ys.add(k)), qy);
+        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
+        if D == 3 {
+            let dz = _mm256_sub_pd(_mm256_loadu_pd(zs.add(k)), qz);
+            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
+        }
+        c += (_mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as u32).count_ones();
+        k += 4;
+    }
+    c + count_run::<D>(sorted, len, a + k, b, q, r2)
+}
+
+/// PACK[mask]: byte shuffle that moves the 32-bit lanes selected by `mask` to the front.
+#[cfg(target_arch = "x86_64")]
+static PACK: [[u8; 16]; 16] = {
+    let mut table = [[0x80u8; 16]; 16];
+    let mut mask = 0;
+    while mask < 16 {
+        let mut out = 0;
+        let mut lane = 0;
+        while lane < 4 {
+            if mask & (1 << lane) != 0 {
+                let mut byte = 0;
+                while byte < 4 {
+                    table[mask][out * 4 + byte] = (lane * 4 + byte) as u8;
+                    byte += 1;
+                }
+                out += 1;
+            }
+            lane += 1;
+        }
+        mask += 1;
+    }
+    table
+};

@@ -1,0 +1,1187 @@
+//! Radius graphs: validation, batching by `n_node`, the canonical distance every method shares,
+//! the two-pass (count, then fill) driver and the brute-force oracle.
+//!
+//! Semantics (shared/design/neighbour-search.md): a directed edge j -> i for every pair of
+//! particles of the same graph with |x_j - x_i| <= radius, self-edges decided by index,
+//! senders and receivers sorted by (receiver, sender), the same for every method and thread
+//! count. Nothing is ever truncated: more than `max_edges` edges is an error.
+
+use crate::cells::Grid;
+use crate::kdtree::KdTree;
+use crate::{first_non_finite, Error, Real, Result};
+use rayon::prelude::*;
+use std::str::FromStr;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+/// The default memory guard: 2^28 edges are 4 GiB of int64 output.
+pub const DEFAULT_MAX_EDGES: u64 = 1 << 28;
+/// Below this many particles one thread beats waking a pool.
+const SERIAL_BELOW: usize = 4096;
+/// Queries per parallel task: small enough to balance clumps, large enough to amortise.
+const TASK: usize = 512;
+
+/// How the neighbours are found; every method returns the same edges.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Method {
+    /// Uniform grid of cell size >= radius (the default; falls back to the k-d tree when the
+    /// bounding box would need far more cells than there are particles).
+    Cells,
+    /// k-d tree, for sparse or very non-uniform clouds.
+    KdTree,
+    /// All pairs: the slow oracle, O(N^2) per graph.
+    Brute,
+}
+
+impl FromStr for Method {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "cells" => Ok(Method::Cells),
+            "kdtree" => Ok(Method::KdTree),
+            "brute" => Ok(Method::Brute),
+            other => Err(Error::Value(format!(
+                "method must be one of 'cells', 'kdtree', 'brute', got {other:?}"
+            ))),
+        }
+    }
+}
+
+/// Everything about a search except the positions and the graph sizes.
+#[derive(Clone, Debug)]
+pub struct GraphOptions {
+    pub radius: f64,
+    pub self_edges: bool,
+    /// Box length per axis; required when any axis is periodic.
+    pub box_lengths: Option<Vec<f64>>,
+    /// Periodic flag per axis (empty: none periodic).
+    pub periodic: Vec<bool>,
+    pub max_edges: u64,
+    pub method: Method,
+}
+
+impl GraphOptions {
+    pub fn new(radius: f64) -> Self {
+        GraphOptions {
+            radius,
+            self_edges: true,
+            box_lengths: None,
+            periodic: Vec::new(),
+            max_edges: DEFAULT_MAX_EDGES,
+            method: Method::Cells,
+        }
+    }
+}
+
+/// An edge list: `senders[e] -> receivers[e]`; with periodic axes, `shifts[e * dim + d]` is the
+/// image count so that x[s] - x[r] + shift * box is the minimum-image displacement.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Edges {
+    pub senders: Vec<i64>,
+    pub receivers: Vec<i64>,
+    pub shifts: Vec<i32>,
+}
+
+/// The distance every method uses, so that they agree to the last bit: f64 throughout,
+/// dx = x_j - x_i per axis, minimum image on periodic axes, summed over axes in order and
+/// compared with radius^2 (inclusive).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Metric {
+    pub r2: f64,
+    /// Search reach for cells and tree pruning: a hair above the radius so that rounding in
+    /// cell indices or box distances can never hide a pair that the exact test accepts.
+    pub reach: f64,
+    pub lengths: [f64; 3],
+    pub periodic: [bool; 3],
+    pub any_periodic: bool,
+}
+
+impl Metric {
+    /// Minimum-image displacement along `axis` and the image count m subtracted (dx - m L).
+    #[inline(always)]
+    pub fn axis(&self, axis: usize, xi: f64, xj: f64) -> (f64, i32) {
+        let dx = xj - xi;
+        if self.periodic[axis] {
+            let l = self.lengths[axis];
+            let m = (dx / l).round();
+            (dx - m * l, m as i32)
+        } else {
+            (dx, 0)
+        }
+    }
+
+    #[inline(always)]
+    pub fn d2<const D: usize>(&self, xi: &[f64; D], xj: &[f64; D]) -> f64 {
+        let mut s = 0.0;
+        for d in 0..D {
+            let (dx, _) = self.axis(d, xi[d], xj[d]);
+            s += dx * dx;
+        }
+        s
+    }
+}
+
+/// Positions of one call, validated, in f64, periodic axes wrapped into [0, L).
+pub(crate) struct Prepared {
+    pub dim: usize,
+    pub coords: Vec<f64>,
+    /// Whole box lengths subtracted when wrapping, per particle and axis (empty if no periodic).
+    pub wraps: Vec<i32>,
+    pub metric: Metric,
+    /// Graph boundaries: graph g holds particles bounds[g]..bounds[g + 1].
+    pub bounds: Vec<usize>,
+}
+
+fn validate_options(dim: usize, opts: &GraphOptions) -> Result<Metric> {
+    let r = opts.radius;
+    if !(r.is_finite() && r > 0.0) {
+        return Err(Error::Value(format!(
+            "radius must be a finite number > 0, got {r}"
+        )));
+    }
+    let mut periodic = [false; 3];
+    if !opts.periodic.is_empty() {
+        if opts.periodic.len() != dim {
+            return Err(Error::Shape(format!(
+                "periodic must have one flag per axis ({dim}), got {} flags",
+                opts.periodic.len()
+            )));
+        }
+        periodic[..dim].copy_from_slice(&opts.periodic);
+    }
+    let any_periodic = periodic.iter().any(|&p| p);
+    let mut lengths = [0.0; 3];
+    match &opts.box_lengths {
+        Some(b) => {
+            if b.len() != dim {
+                return Err(Error::Shape(format!(
+                    "box must have one length per axis ({dim}), got {} values",
+                    b.len()
+                )));
+            }
+            for (d, &l) in b.iter().enumerate() {
+                if !(l.is_finite() && l > 0.0) {
+                    return Err(Error::Value(format!(
+                        "box length on axis {d} must be a finite number > 0, got {l}"
+                    )));
+                }
+                if periodic[d] && l < 2.0 * r {
+                    return Err(Error::Value(format!(
+                        "box length {l} on periodic axis {d} is narrower than 2 * radius = {}; \
+                         the minimum image would be ambiguous",
+                        2.0 * r
+                    )));
+                }
+                lengths[d] = l;
+            }
+        }
+        None if any_periodic => {
+            return Err(Error::Value(
+                "periodic axes need a box (one length per axis)".into(),
+            ))
+        }
+        None => {}
+    }
+    Ok(Metric {
+        r2: r * r,
+        reach: r,
+        lengths,
+        periodic,
+        any_periodic,
+    })
+}
+
+pub(crate) fn prepare<T: Real>(
+    positions: &[T],
+    dim: usize,
+    n_node: Option<&[i64]>,
+    opts: &GraphOptions,
+) -> Result<Prepared> {
+    if dim != 2 && dim != 3 {
+        return Err(Error::Shape(format!(
+            "positions must have 2 or 3 columns, got {dim}"
+        )));
+    }
+    if positions.len() % dim != 0 {
+        return Err(Error::Shape(format!(
+            "positions has {} values, not a multiple of dim = {dim}",
+            positions.len()
+        )));
+    }
+    let n = positions.len() / dim;
+    if n >= u32::MAX as usize {
+        return Err(Error::Shape(format!(
+            "at most {} particles per call, got {n}",
+            u32::MAX - 1
+        )));
+    }
+    let mut metric = validate_options(dim, opts)?;
+    if let Some((i, d)) = first_non_finite(positions, dim) {
+        return Err(Error::NonFinite(format!(
+            "positions[{i}, {d}] is {}; positions must be finite",
+            positions[i * dim + d].to_f64()
+        )));
+    }
+    let bounds = graph_bounds(n, n_node)?;
+
+    let mut coords: Vec<f64> = positions.iter().map(|v| v.to_f64()).collect();
+    let mut wraps = Vec::new();
+    let mut max_abs: f64 = 0.0;
+    if metric.any_periodic {
+        wraps = vec![0i32; coords.len()];
+        for (k, (x, w)) in coords.iter_mut().zip(wraps.iter_mut()).enumerate() {
+            let d = k % dim;
+            if metric.periodic[d] {
+                (*x, *w) = wrap(*x, metric.lengths[d], d)?;
+            }
+        }
+    }
+    for &x in &coords {
+        max_abs = max_abs.max(x.abs());
+    }
+    // A relative margin for the division in cell indices and an absolute one for coordinates
+    // far from the origin, where one ulp of a coordinate is a sizeable part of the radius.
+    metric.reach = opts.radius * (1.0 + 1e-9) + 16.0 * max_abs * f64::EPSILON;
+    Ok(Prepared {
+        dim,
+        coords,
+        wraps,
+        metric,
+        bounds,
+    })
+}
+
+/// x folded into [0, L), and how many box lengths were subtracted.
+fn wrap(x: f64, l: f64, axis: usize) -> Result<(f64, i32)> {
+    let mut k = (x / l).floor();
+    if k.abs() > (i32::MAX / 4) as f64 {
+        return Err(Error::Value(format!(
+            "position {x} is {k} box lengths from the box on periodic axis {axis}; expected \
+             positions within a few box lengths of the box"
+        )));
+    }
+    let mut y = x - k * l;
+    // Rounding can land exactly on L (or a hair below 0): fold it back.
+    if y >= l {
+        y -= l;
+        k += 1.0;
+    }
+    if y < 0.0 {
+        y += l;
+        k -= 1.0;
+    }
+    Ok((y, k as i32))
+}
+
+fn graph_bounds(n: usize, n_node: Option<&[i64]>) -> Result<Vec<usize>> {
+    let Some(sizes) = n_node else {
+        return Ok(vec![0, n]);
+    };
+    let mut bounds = Vec::with_capacity(sizes.len() + 1);
+    bounds.push(0usize);
+    let mut total: i64 = 0;
+    for (g, &s) in sizes.iter().enumerate() {
+        if s < 0 {
+            return Err(Error::Value(format!(
+                "n_node[{g}] = {s}; graph sizes must be >= 0"
+            )));
+        }
+        total = total.saturating_add(s);
+        bounds.push(total as usize);
+    }
+    if total != n as i64 {
+        return Err(Error::Value(format!(
+            "n_node sums to {total} but positions has {n} rows"
+        )));
+    }
+    Ok(bounds)
+}
+
+/// The spatial index of one graph.
+pub(crate) enum GraphIndex {
+    Cells2(Grid<2>),
+    Cells3(Grid<3>),
+    Tree2(KdTree<2>),
+    Tree3(KdTree<3>),
+    Brute { start: usize, end: usize },
+}
+
+/// What a query needs besides its index: the prepared positions and the rules.
+#[derive(Clone, Copy)]
+pub(crate) struct Ctx<'a> {
+    pub dim: usize,
+    /// The CPU has AVX2 (checked at run time): the cell list's SIMD paths may run.
+    pub avx2: bool,
+    pub coords: &'a [f64],
+    pub wraps: &'a [i32],
+    pub metric: Metric,
+    pub self_edges: bool,
+    pub want_shifts: bool,
+}
+
+/// Neighbours of one query, as global indices (and shifts when wanted), unsorted.
+#[derive(Default)]
+pub(crate) struct Found {
+    pub senders: Vec<u32>,
+    pub shifts: Vec<[i32; 3]>,
+    /// Traversal stack of the k-d tree, kept to avoid an allocation per query.
+    pub stack: Vec<u32>,
+    /// Grow-only buffer the cell list compacts candidates into.
+    pub buf: Vec<u32>,
+}
+
+impl GraphIndex {
+    fn len(&self) -> usize {
+        match self {
+            GraphIndex::Cells2(g) => g.len(),
+            GraphIndex::Cells3(g) => g.len(),
+            GraphIndex::Tree2(t) => t.len(),
+            GraphIndex::Tree3(t) => t.len(),
+            GraphIndex::Brute { start, end } => end - start,
+        }
+    }
+
+    /// Counts the neighbours of queries lo..hi (in this index's locality-friendly order);
+    /// `emit(i, count)` for each, with i the global particle index.
+    #[inline(always)]
+    fn count_range(
+        &self,
+        lo: usize,
+        hi: usize,
+        ctx: &Ctx,
+        found: &mut Found,
+        emit: &mut impl FnMut(usize, u32),
+    ) {
+        match self {
+            GraphIndex::Cells2(g) => g.count_range(lo, hi, ctx, emit),
+            GraphIndex::Cells3(g) => g.count_range(lo, hi, ctx, emit),
+            _ => self.collect_range(lo, hi, ctx, found, &mut |i, s, _| emit(i, s.len() as u32)),
+        }
+    }
+
+    /// Collects the neighbours of queries lo..hi; `emit(i, senders, shifts)` for each, senders
+    /// unsorted, shifts empty when not asked for or all zero.
+    #[inline(always)]
+    fn collect_range(
+        &self,
+        lo: usize,
+        hi: usize,
+        ctx: &Ctx,
+        found: &mut Found,
+        emit: &mut impl FnMut(usize, &mut [u32], &[[i32; 3]]),
+    ) {
+        match self {
+            GraphIndex::Cells2(g) => g.collect_range(lo, hi, ctx, found, emit),
+            GraphIndex::Cells3(g) => g.collect_range(lo, hi, ctx, found, emit),
+            GraphIndex::Tree2(t) => {
+                for p in lo..hi {
+                    t.collect(p, ctx, found);
+                    emit(t.original(p), &mut found.senders, &found.shifts);
+                }
+            }
+            GraphIndex::Tree3(t) => {
+                for p in lo..hi {
+                    t.collect(p, ctx, found);
+                    emit(t.original(p), &mut found.senders, &found.shifts);
+                }
+            }
+            GraphIndex::Brute { start, end } => {
+                for i in start + lo..start + hi {
+                    found.senders.clear();
+                    found.shifts.clear();
+                    brute_collect(ctx, *start, *end, i, found);
+                    emit(i, &mut found.senders, &found.shifts);
+                }
+            }
+        }
+    }
+}
+
+#[inline(always)]
+pub(crate) fn point<const D: usize>(coords: &[f64], i: usize) -> [f64; D] {
+    let mut p = [0.0; D];
+    p.copy_from_slice(&coords[i * D..(i + 1) * D]);
+    p
+}
+
+/// Accepts j (at xj) as a neighbour of i (at xi) under the canonical metric; records the
+/// shift if asked. Every method ends here, so they agree to the last bit.
+#[inline(always)]
+pub(crate) fn accept_sorted<const D: usize>(
+    ctx: &Ctx,
+    i: usize,
+    j: usize,
+    xi: &[f64; D],
+    xj: &[f64; D],
+    found: &mut Found,
+) {
+    if j == i && !ctx.self_edges {
+        return;
+    }
+    if ctx.metric.d2(xi, xj) <= ctx.metric.r2 {
+        found.senders.push(j as u32);
+        if ctx.want_shifts {
+            found.shifts.push(shift::<D>(ctx, i, j));
+        }
+    }
+}
+
+#[inline(always)]
+fn accept<const D: usize>(ctx: &Ctx, i: usize, j: usize, found: &mut Found) {
+    let xi = point::<D>(ctx.coords, i);
+    let xj = point::<D>(ctx.coords, j);
+    accept_sorted(ctx, i, j, &xi, &xj, found);
+}
+
+/// Image count per axis such that x[j] - x[i] + shift * L is the minimum-image displacement
+/// in the caller's (unwrapped) coordinates.
+#[inline]
+pub(crate) fn shift<const D: usize>(ctx: &Ctx, i: usize, j: usize) -> [i32; 3] {
+    let mut s = [0i32; 3];
+    if !ctx.metric.any_periodic {
+        return s;
+    }
+    for (d, sd) in s.iter_mut().enumerate().take(D) {
+        if ctx.metric.periodic[d] {
+            let (_, m) = ctx
+                .metric
+                .axis(d, ctx.coords[i * D + d], ctx.coords[j * D + d]);
+            // wrapped = x - k L, so x_j - x_i = (w_j - w_i) + (k_j - k_i) L.
+            *sd = ctx.wraps[i * D + d] - ctx.wraps[j * D + d] - m;
+        }
+    }
+    s
+}
+
+/// The oracle: every particle of the graph tested with the canonical metric.
+fn brute_collect(ctx: &Ctx, start: usize, end: usize, i: usize, found: &mut Found) {
+    for j in start..end {
+        if ctx.dim == 2 {
+            accept::<2>(ctx, i, j, found);
+        } else {
+            accept::<3>(ctx, i, j, found);
+        }
+    }
+}
+
+/// A raw pointer that several threads write through, each to rows no other thread touches.
+#[derive(Clone, Copy)]
+struct SharedMut<T>(*mut T);
+unsafe impl<T> Send for SharedMut<T> {}
+unsafe impl<T> Sync for SharedMut<T> {}
+
+impl<T> SharedMut<T> {
+    /// A method, not a field access, so closures capture the Sync wrapper, not the pointer.
+    #[inline(always)]
+    fn ptr(self) -> *mut T {
+        self.0
+    }
+}
+
+/// A reusable radius-graph searcher: keeps its buffers (and optionally its own thread pool)
+/// between calls, so repeated searches of similar size allocate nothing but the output.
+pub struct Searcher {
+    pool: Option<rayon::ThreadPool>,
+    prepared: Option<Prepared>,
+    indices: Vec<GraphIndex>,
+    /// Neighbour count per particle, by original index.
+    counts: Vec<u32>,
+    /// Row offsets by original index (len N + 1): receiver i owns offsets[i]..offsets[i + 1].
+    offsets: Vec<u64>,
+    self_edges: bool,
+}
+
+impl Default for Searcher {
+    fn default() -> Self {
+        Searcher {
+            pool: None,
+            prepared: None,
+            indices: Vec::new(),
+            counts: Vec::new(),
+            offsets: Vec::new(),
+            self_edges: true,
+        }
+    }
+}
+
+impl Searcher {
+    /// A searcher on the global rayon pool (`num_threads = None`) or on a pool of its own.
+    pub fn new(num_threads: Option<usize>) -> Result<Self> {
+        let pool = match num_threads {
+            None => None,
+            Some(0) => {
+                return Err(Error::Value(
+                    "num_threads must be >= 1 (or None for the default pool), got 0".into(),
+                ))
+            }
+            Some(t) => Some(
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(t)
+                    .build()
+                    .map_err(|e| Error::Value(format!("cannot start {t} threads: {e}")))?,
+            ),
+        };
+        Ok(Searcher {
+            pool,
+            ..Default::default()
+        })
+    }
+
+    fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        match &self.pool {
+            Some(p) => p.install(f),
+            None => f(),
+        }
+    }
+
+    /// First pass: validates, indexes and counts. Returns the number of edges.
+    pub fn count<T: Real>(
+        &mut self,
+        positions: &[T],
+        dim: usize,
+        n_node: Option<&[i64]>,
+        opts: &GraphOptions,
+    ) -> Result<usize> {
+        self.prepared = None;
+        let prepared = prepare(positions, dim, n_node, opts)?;
+        let mut indices = std::mem::take(&mut self.indices);
+        let mut counts = std::mem::take(&mut self.counts);
+        let mut offsets = std::mem::take(&mut self.offsets);
+        let result = self.install(|| {
+            build_indices(&prepared, opts.method, &mut indices);
+            count_all(&prepared, &indices, opts, &mut counts, &mut offsets)
+        });
+        self.indices = indices;
+        self.counts = counts;
+        self.offsets = offsets;
+        let total = result?;
+        self.prepared = Some(prepared);
+        self.self_edges = opts.self_edges;
+        Ok(total)
+    }
+
+    /// Second pass: writes the edges counted by the last [`Searcher::count`] into exact-size
+    /// slices; `shifts` (len E * dim) is filled when given.
+    pub fn fill(
+        &self,
+        senders: &mut [i64],
+        receivers: &mut [i64],
+        shifts: Option<&mut [i32]>,
+    ) -> Result<()> {
+        let prepared = self
+            .prepared
+            .as_ref()
+            .ok_or_else(|| Error::Value("fill called before a successful count".into()))?;
+        let total = *self.offsets.last().unwrap_or(&0) as usize;
+        let dim = prepared.dim;
+        if senders.len() != total || receivers.len() != total {
+            return Err(Error::Shape(format!(
+                "output needs {total} senders and receivers, got {} and {}",
+                senders.len(),
+                receivers.len()
+            )));
+        }
+        if let Some(s) = &shifts {
+            if s.len() != total * dim {
+                return Err(Error::Shape(format!(
+                    "shifts needs {} values, got {}",
+                    total * dim,
+                    s.len()
+                )));
+            }
+        }
+        let ctx = Ctx {
+            dim,
+            avx2: has_avx2(),
+            coords: &prepared.coords,
+            wraps: &prepared.wraps,
+            metric: prepared.metric,
+            self_edges: self.self_edges,
+            want_shifts: shifts.is_some(),
+        };
+        let out_s = SharedMut(senders.as_mut_ptr());
+        let out_sh = shifts.map(|s| SharedMut(s.as_mut_ptr()));
+        let offsets = &self.offsets;
+        let run_task = |g: usize, lo: usize, hi: usize| {
+            let mut found = Found::default();
+            let mut order: Vec<usize> = Vec::new();
+            let mut write_row = |i: usize, senders: &mut [u32], shifts: &[[i32; 3]]| {
+                let o = offsets[i] as usize;
+                let len = senders.len();
+                debug_assert_eq!(o + len, offsets[i + 1] as usize);
+                // SAFETY: receiver i owns offsets[i]..offsets[i + 1], and every receiver is
+                // the query of exactly one task.
+                let srow = unsafe { std::slice::from_raw_parts_mut(out_s.ptr().add(o), len) };
+                if shifts.is_empty() {
+                    sort_into(senders, srow);
+                    if let Some(sh) = out_sh {
+                        // Asked for shifts without periodic axes: they are all zero.
+                        unsafe { std::slice::from_raw_parts_mut(sh.ptr().add(o * dim), len * dim) }
+                            .fill(0);
+                    }
+                } else if let Some(sh) = out_sh {
+                    order.clear();
+                    order.extend(0..len);
+                    order.sort_unstable_by_key(|&k| senders[k]);
+                    let shrow =
+                        unsafe { std::slice::from_raw_parts_mut(sh.ptr().add(o * dim), len * dim) };
+                    for (e, &k) in order.iter().enumerate() {
+                        srow[e] = senders[k] as i64;
+                        shrow[e * dim..(e + 1) * dim].copy_from_slice(&shifts[k][..dim]);
+                    }
+                }
+            };
+            with_simd(ctx.avx2, || {
+                self.indices[g].collect_range(lo, hi, &ctx, &mut found, &mut write_row)
+            });
+        };
+        // Receivers are written in their own sequential pass: row after row, in order, where
+        // the senders pass jumps between rows (it follows the spatial order of the queries).
+        let n = prepared.coords.len() / dim;
+        let (receivers, offsets) = (SharedMut(receivers.as_mut_ptr()), &self.offsets);
+        let write_receivers = |i0: usize| {
+            let i1 = (i0 + TASK * 8).min(n);
+            let start = offsets[i0] as usize;
+            // SAFETY: particles i0..i1 own offsets[i0]..offsets[i1], written by this call only.
+            let rows = unsafe {
+                std::slice::from_raw_parts_mut(
+                    receivers.ptr().add(start),
+                    offsets[i1] as usize - start,
+                )
+            };
+            for i in i0..i1 {
+                rows[offsets[i] as usize - start..offsets[i + 1] as usize - start].fill(i as i64);
+            }
+        };
+        let tasks = tasks(&self.indices);
+        self.install(|| {
+            if n < SERIAL_BELOW {
+                tasks.iter().for_each(|&(g, lo, hi)| run_task(g, lo, hi));
+                (0..n).step_by(TASK * 8).for_each(write_receivers);
+            } else {
+                tasks
+                    .par_iter()
+                    .for_each(|&(g, lo, hi)| run_task(g, lo, hi));
+                (0..n)
+                    .into_par_iter()
+                    .step_by(TASK * 8)
+                    .for_each(write_receivers);
+            }
+        });
+        Ok(())
+    }
+
+    /// Count and fill into fresh vectors.
+    pub fn search<T: Real>(
+        &mut self,
+        positions: &[T],
+        dim: usize,
+        n_node: Option<&[i64]>,
+        opts: &GraphOptions,
+        want_shifts: bool,
+    ) -> Result<Edges> {
+        let e = self.count(positions, dim, n_node, opts)?;
+        let mut edges = Edges {
+            senders: vec![0; e],
+            receivers: vec![0; e],
+            shifts: if want_shifts {
+                vec![0; e * dim]
+            } else {
+                Vec::new()
+            },
+        };
+        let sh = want_shifts.then_some(edges.shifts.as_mut_slice());
+        self.fill(&mut edges.senders, &mut edges.receivers, sh)?;
+        Ok(edges)
+    }
+}
+
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Runs `f` compiled for AVX2 when the CPU has it, so the loops inlined into it (distance
+/// tests, the rank sort) vectorise 4 wide. Same arithmetic either way: no FMA contraction.
+#[inline(always)]
+fn with_simd<R>(avx2: bool, f: impl FnOnce() -> R) -> R {
+    #[cfg(target_arch = "x86_64")]
+    if avx2 {
+        #[target_feature(enable = "avx2")]
+        unsafe fn wide<R>(f: impl FnOnce() -> R) -> R {
+            f()
+        }
+        // SAFETY: avx2 is only true when the CPU has AVX2.
+        return unsafe { wide(f) };
+    }
+    let _ = avx2;
+    f()
+}
+
+/// Writes the distinct values `row` in ascending order to `out` (same length).
+/// A typical row holds ~10-40 neighbours; for those, placing each value at its rank
+/// (the count of smaller values) is branch-free and vectorises, where a comparison sort
+/// pays a misprediction per element.
+#[inline(always)]
+fn sort_into(row: &mut [u32], out: &mut [i64]) {
+    const SHORT: usize = 48;
+    #[cfg(target_arch = "x86_64")]
+    if row.len() <= SHORT && has_avx2() {
+        // SAFETY: checked that the CPU has AVX2 (the check is a cached load).
+        unsafe { rank_sort_avx2(row, out) };
+        return;
+    }
+    if row.len() <= SHORT {
+        // Padded to whole vectors with values no index can exceed, so the rank loop has no
+        // scalar tail.
+        let mut padded = [u32::MAX; SHORT];
+        padded[..row.len()].copy_from_slice(row);
+        let width = row.len().div_ceil(8) * 8;
+        for &x in row.iter() {
+            let rank: u32 = padded[..width].iter().map(|&y| (y < x) as u32).sum();
+            out[rank as usize] = x as i64;
+        }
+    } else {
+        row.sort_unstable();
+        for (dst, &j) in out.iter_mut().zip(row.iter()) {
+            *dst = j as i64;
+        }
+    }
+}
+
+/// [`sort_into`] for rows of at most 48: each value's rank is a count of smaller values,
+/// 8 comparisons per instruction (indices are biased by 2^31 for a signed compare).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,popcnt")]
+unsafe fn rank_sort_avx2(row: &[u32], out: &mut [i64]) {
+    use std::arch::x86_64::*;
+    const BIAS: u32 = 0x8000_0000;
+    assert!(row.len() <= 48 && out.len() == row.len());
+    let mut padded = [i32::MAX; 48];
+    for (p, &x) in padded.iter_mut().zip(row) {
+        *p = (x ^ BIAS) as i32;
+    }
+    let nv = row.len().div_ceil(8);
+    let mut v = [_mm256_setzero_si256(); 6];
+    for (k, vk) in v.iter_mut().enumerate().take(nv) {
+        *vk = _mm256_loadu_si256(padded.as_ptr().add(8 * k) as *const __m256i);
+    }
+    for (k, &x) in row.iter().enumerate() {
+        let xb = _mm256_set1_epi32(padded[k]);
+        let mut rank = 0u32;
+        for vk in &v[..nv] {
+            let smaller = _mm256_cmpgt_epi32(xb, *vk);
+            rank += (_mm256_movemask_ps(_mm256_castsi256_ps(smaller)) as u32).count_ones();
+        }
+        out[rank as usize] = x as i64;
+    }
+}
+
+/// (graph, first query, end) slices of every graph's query order, TASK queries each.
+fn tasks(indices: &[GraphIndex]) -> Vec<(usize, usize, usize)> {
+    let mut t = Vec::new();
+    for (g, index) in indices.iter().enumerate() {
+        let n = index.len();
+        let mut lo = 0;
+        while lo < n {
+            let hi = (lo + TASK).min(n);
+            t.push((g, lo, hi));
+            lo = hi;
+        }
+    }
+    t
+}
+
+fn build_indices(prepared: &Prepared, method: Method, indices: &mut Vec<GraphIndex>) {
+    let n_graphs = prepared.bounds.len() - 1;
+    // Old indices keep their buffers where the variant matches (a searcher called every step).
+    indices.truncate(n_graphs);
+    indices.resize_with(n_graphs, || GraphIndex::Brute { start: 0, end: 0 });
+    let build = |(g, slot): (usize, &mut GraphIndex)| build_one(prepared, method, g, slot);
+    if prepared.coords.len() / prepared.dim < SERIAL_BELOW || n_graphs == 1 {
+        indices.iter_mut().enumerate().for_each(build);
+    } else {
+        indices.par_iter_mut().enumerate().for_each(build);
+    }
+}
+
+fn build_one(prepared: &Prepared, method: Method, g: usize, slot: &mut GraphIndex) {
+    let (start, end) = (prepared.bounds[g], prepared.bounds[g + 1]);
+    let tree = || match prepared.dim {
+        2 => GraphIndex::Tree2(KdTree::build(prepared, start, end)),
+        _ => GraphIndex::Tree3(KdTree::build(prepared, start, end)),
+    };
+    match method {
+        Method::Brute => *slot = GraphIndex::Brute { start, end },
+        Method::KdTree => *slot = tree(),
+        Method::Cells => {
+            let fits = match (prepared.dim, &mut *slot) {
+                (2, GraphIndex::Cells2(grid)) => grid.rebuild(prepared, start, end),
+                (3, GraphIndex::Cells3(grid)) => grid.rebuild(prepared, start, end),
+                (2, _) => {
+                    let mut grid = Grid::default();
+                    let fits = grid.rebuild(prepared, start, end);
+                    *slot = GraphIndex::Cells2(grid);
+                    fits
+                }
+                _ => {
+                    let mut grid = Grid::default();
+                    let fits = grid.rebuild(prepared, start, end);
+                    *slot = GraphIndex::Cells3(grid);
+                    fits
+                }
+            };
+            // The grid declines when the bounding box would need far more cells than there
+            // are particles (outliers far away): a tree handles any spread.
+            if !fits {
+                *slot = tree();
+            }
+        }
+    }
+}
+
+/// Counts every query's neighbours into `counts` (by original index) and their prefix sums
+/// into `offsets`; stops early, with an error, once the total passes `max_edges`.
+fn count_all(
+    prepared: &Prepared,
+    indices: &[GraphIndex],
+    opts: &GraphOptions,
+    counts: &mut Vec<u32>,
+    offsets: &mut Vec<u64>,
+) -> Result<usize> {
+    let n = prepared.coords.len() / prepared.dim;
+    let ctx = Ctx {
+        dim: prepared.dim,
+        avx2: has_avx2(),
+        coords: &prepared.coords,
+        wraps: &prepared.wraps,
+        metric: prepared.metric,
+        self_edges: opts.self_edges,
+        want_shifts: false,
+    };
+    counts.clear();
+    counts.resize(n, 0);
+    let out = SharedMut(counts.as_mut_ptr());
+    let total = AtomicU64::new(0);
+    let over = AtomicBool::new(false);
+    let run_task = |&(g, lo, hi): &(usize, usize, usize)| {
+        if over.load(Ordering::Relaxed) {
+            return;
+        }
+        let mut found = Found::default();
+        let mut sum = 0u64;
+        with_simd(ctx.avx2, || {
+            indices[g].count_range(lo, hi, &ctx, &mut found, &mut |i, c| {
+                // SAFETY: each particle is the query of exactly one task.
+                unsafe { *out.ptr().add(i) = c };
+                sum += c as u64;
+            })
+        });
+        if total.fetch_add(sum, Ordering::Relaxed) + sum > opts.max_edges {
+            over.store(true, Ordering::Relaxed);
+        }
+    };
+    let tasks = tasks(indices);
+    if n < SERIAL_BELOW {
+        tasks.iter().for_each(run_task);
+    } else {
+        tasks.par_iter().for_each(run_task);
+    }
+    let total = total.load(Ordering::Relaxed);
+    if over.load(Ordering::Relaxed) {
+        return Err(Error::TooManyEdges {
+            at_least: total,
+            max_edges: opts.max_edges,
+        });
+    }
+    offsets.clear();
+    offsets.reserve(n + 1);
+    let mut acc = 0u64;
+    offsets.push(0);
+    for &c in counts.iter() {
+        acc += c as u64;
+        offsets.push(acc);
+    }
+    Ok(acc as usize)
+}
+
+/// Radius graph in one call (a fresh [`Searcher`] on the global pool).
+pub fn radius_graph<T: Real>(
+    positions: &[T],
+    dim: usize,
+    n_node: Option<&[i64]>,
+    opts: &GraphOptions,
+    want_shifts: bool,
+) -> Result<Edges> {
+    Searcher::default().search(positions, dim, n_node, opts, want_shifts)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deterministic points (xorshift64*), so the tests need no dependency.
+    pub(crate) fn random_points(n: usize, dim: usize, seed: u64, scale: f64) -> Vec<f64> {
+        let mut s = seed.wrapping_mul(0x9E3779B97F4A7C15) | 1;
+        (0..n * dim)
+            .map(|_| {
+                s ^= s >> 12;
+                s ^= s << 25;
+                s ^= s >> 27;
+                scale * ((s.wrapping_mul(0x2545F4914F6CDD1D) >> 11) as f64 / (1u64 << 53) as f64)
+            })
+            .collect()
+    }
+
+    /// The plainest possible oracle, independent of Metric: all pairs, f64, minimum image by
+    /// trying every image within one box length.
+    fn naive(pts: &[f64], dim: usize, bounds: &[usize], opts: &GraphOptions) -> Vec<(i64, i64)> {
+        let mut out = Vec::new();
+        for g in 0..bounds.len() - 1 {
+            for i in bounds[g]..bounds[g + 1] {
+                for j in bounds[g]..bounds[g + 1] {
+                    if i == j && !opts.self_edges {
+                        continue;
+                    }
+                    let mut d2 = 0.0;
+                    for d in 0..dim {
+                        let mut dx: f64 = pts[j * dim + d] - pts[i * dim + d];
+                        if opts.periodic.get(d).copied().unwrap_or(false) {
+                            let l = opts.box_lengths.as_ref().unwrap()[d];
+                            dx = dx.rem_euclid(l);
+                            dx = dx.min(l - dx);
+                        }
+                        d2 += dx * dx;
+                    }
+                    if d2 <= opts.radius * opts.radius {
+                        out.push((i as i64, j as i64));
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    fn as_pairs(e: &Edges) -> Vec<(i64, i64)> {
+        e.receivers
+            .iter()
+            .zip(&e.senders)
+            .map(|(&r, &s)| (r, s))
+            .collect()
+    }
+
+    fn all_methods(pts: &[f64], dim: usize, n_node: Option<&[i64]>, opts: &GraphOptions) -> Edges {
+        let mut first: Option<Edges> = None;
+        for method in [Method::Brute, Method::Cells, Method::KdTree] {
+            for threads in [None, Some(1), Some(3)] {
+                let o = GraphOptions {
+                    method,
+                    ..opts.clone()
+                };
+                let e = Searcher::new(threads)
+                    .unwrap()
+                    .search(pts, dim, n_node, &o, o.box_lengths.is_some())
+                    .unwrap();
+                match &first {
+                    None => first = Some(e),
+                    Some(f) => assert_eq!(f, &e, "{method:?} with {threads:?} threads differs"),
+                }
+            }
+        }
+        first.unwrap()
+    }
+
+    #[test]
+    fn every_method_matches_the_naive_oracle() {
+        for dim in [2, 3] {
+            for (n, radius) in [(0, 0.1), (1, 0.1), (2, 5.0), (300, 0.08), (5000, 0.03)] {
+                let pts = random_points(n, dim, 7 + n as u64, 1.0);
+                let opts = GraphOptions::new(radius);
+                let e = all_methods(&pts, dim, None, &opts);
+                assert_eq!(
+                    as_pairs(&e),
+                    naive(&pts, dim, &[0, n], &opts),
+                    "dim {dim} n {n}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn rows_are_sorted_by_receiver_then_sender() {
+        let pts = random_points(6000, 2, 3, 1.0);
+        let e = radius_graph(&pts, 2, None, &GraphOptions::new(0.04), false).unwrap();
+        let pairs = as_pairs(&e);
+        assert!(pairs.windows(2).all(|w| w[0] < w[1]));
+        // Long rows (a dense clump) take the comparison-sort path: still sorted.
+        let mut dense = random_points(3000, 2, 4, 0.01);
+        dense.extend(random_points(3000, 2, 5, 1.0));
+        let e = radius_graph(&dense, 2, None, &GraphOptions::new(0.02), false).unwrap();
+        assert!(as_pairs(&e).windows(2).all(|w| w[0] < w[1]));
+        assert!(e.senders.len() > 3000 * 100);
+    }
+
+    #[test]
+    fn batches_never_cross_graphs() {
+        let pts = random_points(900, 3, 11, 1.0);
+        let sizes = [0i64, 400, 0, 499, 1];
+        let bounds = [0, 0, 400, 400, 899, 900];
+        let opts = GraphOptions::new(0.2);
+        let e = all_methods(&pts, 3, Some(&sizes), &opts);
+        assert_eq!(as_pairs(&e), naive(&pts, 3, &bounds, &opts));
+    }
+
+    #[test]
+    fn periodic_boxes_use_the_minimum_image() {
+        for (dim, periodic, lengths) in [
+            (2, vec![true, true], vec![1.0, 0.5]),
+            (3, vec![true, false, true], vec![1.0, 1.0, 0.3]),
+            // Exactly 2 * radius wide: one or two cells per axis.
+            (2, vec![true, true], vec![0.2, 0.3]),
+        ] {
+            let mut pts = random_points(700, dim, 5, 1.0);
+            for (k, x) in pts.iter_mut().enumerate() {
+                *x *= lengths[k % dim];
+            }
+            let opts = GraphOptions {
+                box_lengths: Some(lengths.clone()),
+                periodic: periodic.clone(),
+                ..GraphOptions::new(0.1)
+            };
+            let e = all_methods(&pts, dim, None, &opts);
+            assert_eq!(as_pairs(&e), naive(&pts, dim, &[0, 700], &opts));
+            // The shifts reproduce the minimum-image displacement.
+            for (k, (&r, &s)) in e.receivers.iter().zip(&e.senders).enumerate() {
+                let mut d2 = 0.0;
+                for d in 0..dim {
+                    let sh = e.shifts[k * dim + d] as f64 * lengths[d];
+                    let dx = pts[s as usize * dim + d] - pts[r as usize * dim + d] + sh;
+                    assert!(dx.abs() <= lengths[d] / 2.0 + 1e-12);
+                    d2 += dx * dx;
+                }
+                assert!(d2 <= 0.01 + 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn wrapped_positions_keep_their_shifts() {
+        // The same particles, some moved by whole box lengths: same pairs, and the shifts
+        // absorb the moves.
+        let pts = random_points(200, 2, 9, 1.0);
+        let mut moved = pts.clone();
+        for (k, x) in moved.iter_mut().enumerate() {
+            *x += ((k % 5) as f64 - 2.0) * 1.0;
+        }
+        let opts = GraphOptions {
+            box_lengths: Some(vec![1.0, 1.0]),
+            periodic: vec![true, true],
+            ..GraphOptions::new(0.15)
+        };
+        let a = radius_graph(&pts, 2, None, &opts, true).unwrap();
+        let b = radius_graph(&moved, 2, None, &opts, true).unwrap();
+        assert_eq!(a.senders, b.senders);
+        for (k, (&r, &s)) in b.receivers.iter().zip(&b.senders).enumerate() {
+            for d in 0..2 {
+                let disp_a =
+                    pts[s as usize * 2 + d] - pts[r as usize * 2 + d] + a.shifts[k * 2 + d] as f64;
+                let disp_b = moved[s as usize * 2 + d] - moved[r as usize * 2 + d]
+                    + b.shifts[k * 2 + d] as f64;
+                assert!((disp_a - disp_b).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn exactly_at_the_radius_is_inside_and_a_hair_beyond_is_not() {
+        // 3-4-5 triangle: exactly representable, distance exactly 5.
+        let pts = [0.0, 0.0, 3.0, 4.0, 3.0, 4.0 + 4.0 * f64::EPSILON];
+        let e = all_methods(&pts, 2, None, &GraphOptions::new(5.0));
+        assert_eq!(
+            as_pairs(&e),
+            vec![(0, 0), (0, 1), (1, 0), (1, 1), (1, 2), (2, 1), (2, 2)]
+        );
+        // float32 inputs with the same values give the same graph.
+        let p32: Vec<f32> = [0.0f32, 0.0, 0.5, 0.0, 0.0, 0.5].to_vec();
+        let e = radius_graph(&p32, 2, None, &GraphOptions::new(0.5), false).unwrap();
+        assert_eq!(e.senders.len(), 3 + 4);
+    }
+
+    #[test]
+    fn coincident_particles_are_neighbours_and_self_edges_go_by_index() {
+        let pts = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0];
+        let opts = GraphOptions {
+            self_edges: false,
+            ..GraphOptions::new(0.5)
+        };
+        let e = all_methods(&pts, 2, None, &opts);
+        assert_eq!(
+            as_pairs(&e),
+            vec![(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]
+        );
+    }
+
+    #[test]
+    fn far_outliers_neither_blow_up_the_grid_nor_get_lost() {
+        let mut pts = random_points(2000, 3, 2, 1.0);
+        pts.extend_from_slice(&[1e6, 1e6, 1e6, 1e6 + 0.01, 1e6, 1e6, -1e300, 0.0, 0.0]);
+        let opts = GraphOptions::new(0.1);
+        let e = all_methods(&pts, 3, None, &opts);
+        assert_eq!(as_pairs(&e), naive(&pts, 3, &[0, 2003], &opts));
+    }
+
+    #[test]
+    fn too_many_edges_is_an_error_naming_the_count() {
+        let pts = vec![0.5; 2 * 20_000];
+        let opts = GraphOptions {
+            max_edges: 1_000_000,
+            ..GraphOptions::new(0.1)
+        };
+        match radius_graph(&pts, 2, None, &opts, false) {
+            Err(Error::TooManyEdges {
+                at_least,
+                max_edges,
+            }) => {
+                assert!(at_least > 1_000_000 && max_edges == 1_000_000);
+            }
+            other => panic!("expected TooManyEdges, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn bad_inputs_are_rejected_with_their_value() {
+        let ok = [0.0, 0.0, 1.0, 1.0];
+        let err = |pts: &[f64], dim: usize, n_node: Option<&[i64]>, o: GraphOptions| {
+            radius_graph(pts, dim, n_node, &o, false)
+                .unwrap_err()
+                .to_string()
+        };
+        assert!(err(&[0.0, f64::NAN], 2, None, GraphOptions::new(1.0)).contains("NaN"));
+        assert!(err(&[0.0, f64::INFINITY], 2, None, GraphOptions::new(1.0)).contains("inf"));
+        assert!(err(&ok, 4, None, GraphOptions::new(1.0)).contains("2 or 3"));
+        assert!(err(&ok[..3], 2, None, GraphOptions::new(1.0)).contains("multiple"));
+        for r in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(err(&ok, 2, None, GraphOptions::new(r)).contains("radius"));
+        }
+        assert!(err(&ok, 2, Some(&[1, 2]), GraphOptions::new(1.0)).contains("sums to 3"));
+        assert!(err(&ok, 2, Some(&[3, -1]), GraphOptions::new(1.0)).contains("-1"));
+        let periodic = |b: Option<Vec<f64>>| GraphOptions {
+            box_lengths: b,
+            periodic: vec![true, false],
+            ..GraphOptions::new(1.0)
+        };
+        assert!(err(&ok, 2, None, periodic(None)).contains("need a box"));
+        assert!(err(&ok, 2, None, periodic(Some(vec![1.5, 1.0]))).contains("narrower"));
+        assert!(err(&ok, 2, None, periodic(Some(vec![2.0]))).contains("one length per axis"));
+        assert!("octree"
+            .parse::<Method>()
+            .unwrap_err()
+            .to_string()
+            .contains("octree"));
+    }
+}

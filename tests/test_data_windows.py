@@ -1,0 +1,115 @@
+"""Training windows, the shuffle buffer and particle-budget packing."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+from data_helpers import random_walk
+from gns.data import (
+    DatasetError,
+    Trajectory,
+    pack_batches,
+    shuffle_buffer,
+    training_windows,
+    trajectory_windows,
+)
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+
+def test_windows_are_consecutive_frames_with_context_at_last_input():
+    trajectory = random_walk(np.random.default_rng(0), 20, 5, context=2)
+    windows = list(trajectory_windows(trajectory))
+    assert len(windows) == 20 - 6  # starts 0..13, each 6 inputs + 1 target
+    for start, window in enumerate(windows):
+        assert window.start == start
+        assert window.positions.shape == (7, 5, 2)
+        np.testing.assert_array_equal(window.positions, trajectory.positions[start : start + 7])
+        np.testing.assert_array_equal(window.target_position, trajectory.positions[start + 6])
+        np.testing.assert_array_equal(window.step_context, trajectory.step_context[start + 5])
+    # Windows own their frames: a shuffle buffer must not pin whole trajectories.
+    assert not np.shares_memory(windows[0].positions, trajectory.positions)
+
+
+def test_short_trajectory_has_no_windows():
+    trajectory = random_walk(np.random.default_rng(1), 6, 3)
+    assert list(trajectory_windows(trajectory)) == []
+    assert len(list(trajectory_windows(trajectory, input_sequence_length=2))) == 4
+
+
+def test_shuffle_buffer_is_a_deterministic_permutation():
+    items = list(range(1000))
+    a = list(shuffle_buffer(items, 64, np.random.default_rng(3)))
+    b = list(shuffle_buffer(items, 64, np.random.default_rng(3)))
+    c = list(shuffle_buffer(items, 64, np.random.default_rng(4)))
+    assert sorted(a) == items and a == b and a != c and a != items
+    # A buffer of 64 can delay an item arbitrarily but never emit it more than 63 places early.
+    assert all(position >= item - 63 for position, item in enumerate(a))
+
+
+def test_training_windows_cover_every_window_once_per_epoch():
+    rng = np.random.default_rng(5)
+    trajectories = [random_walk(rng, 12 + i, 3 + i, key=i) for i in range(4)]
+    seen = Counter(
+        (w.trajectory, w.start)
+        for w in training_windows(trajectories, shuffle_buffer_size=10, seed=1, epochs=2)
+    )
+    expected = {(i, s) for i in range(4) for s in range(12 + i - 6)}
+    assert set(seen) == expected and set(seen.values()) == {2}
+    first = [(w.trajectory, w.start) for w in training_windows(trajectories, seed=9)]
+    again = [(w.trajectory, w.start) for w in training_windows(trajectories, seed=9)]
+    assert first == again
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    sizes=st.lists(st.integers(1, 50), min_size=1, max_size=30),
+    budget=st.integers(50, 200),
+    max_graphs=st.one_of(st.none(), st.integers(1, 5)),
+)
+def test_packing_respects_the_budget_and_keeps_every_window(sizes, budget, max_graphs):
+    rng = np.random.default_rng(0)
+    trajectories = [
+        Trajectory(rng.uniform(size=(7, n, 2)), np.arange(n) % 4, key=i)
+        for i, n in enumerate(sizes)
+    ]
+    windows = [next(trajectory_windows(t)) for t in trajectories]
+    batches = list(pack_batches(windows, budget, max_graphs=max_graphs))
+    assert [int(t) for b in batches for t in b.trajectory] == list(range(len(sizes)))
+    for batch in batches:
+        assert batch.n_node.sum() <= budget
+        assert max_graphs is None or batch.num_graphs <= max_graphs
+        assert batch.positions.shape == (7, batch.n_node.sum(), 2)
+    # Greedy: a batch was closed only because the next window would not fit.
+    for this, following in zip(batches, batches[1:], strict=False):
+        full = max_graphs is not None and this.num_graphs == max_graphs
+        assert full or this.n_node.sum() + following.n_node[0] > budget
+    # Concatenation keeps each graph's particles contiguous and in order.
+    for batch in batches:
+        start = 0
+        for n, t in zip(batch.n_node, batch.trajectory, strict=True):
+            np.testing.assert_array_equal(
+                batch.positions[:, start : start + n], windows[t].positions
+            )
+            start += n
+
+
+def test_batch_carries_context_and_broadcast_material():
+    rng = np.random.default_rng(6)
+    a = random_walk(rng, 8, 3, context=1, material="scalar", key=0)
+    b = random_walk(rng, 8, 2, context=1, material="scalar", key=1)
+    windows = [next(trajectory_windows(a)), next(trajectory_windows(b))]
+    (batch,) = pack_batches(windows, 100)
+    assert batch.step_context.shape == (2, 1)
+    np.testing.assert_array_equal(batch.n_node, [3, 2])
+    np.testing.assert_array_equal(
+        batch.material_property, [a.material_property] * 3 + [b.material_property] * 2
+    )
+
+
+def test_window_larger_than_budget_is_an_error():
+    trajectory = random_walk(np.random.default_rng(7), 8, 30, key=4)
+    with pytest.raises(DatasetError, match="30 particles, more than the particle budget 20"):
+        list(pack_batches(trajectory_windows(trajectory), 20))
