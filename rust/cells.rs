@@ -2,7 +2,7 @@
 //! from the graph's actual bounding box, with positions copied in cell order (structure of
 //! arrays) so that each query scans a few contiguous runs instead of 9 or 27 scattered cells.
 
-use crate::graph::{accept_sorted, Ctx, Found, Prepared};
+use crate::graph::{accept_at, Ctx, Found, Prepared};
 
 /// The grid declines (and the caller uses the k-d tree) when it would need more cells than
 /// this many per particle: an outlier far away must not allocate billions of empty cells.
@@ -236,14 +236,16 @@ impl<const D: usize> Grid<D> {
         &self,
         lo: usize,
         hi: usize,
-        mut f: impl FnMut(usize, usize, &[(usize, usize)]),
+        mut f: impl FnMut(usize, usize, &[(usize, usize)]) -> bool,
     ) {
         let mut p = lo;
         while p < hi {
             let c = self.cell_of[p] as usize;
             let end = (self.cell_start[c + 1] as usize).min(hi);
             let (runs, k) = self.runs_of_cell(c);
-            f(p, end, &runs[..k]);
+            if !f(p, end, &runs[..k]) {
+                return;
+            }
             p = end;
         }
     }
@@ -257,34 +259,33 @@ impl<const D: usize> Grid<D> {
         q
     }
 
-    #[inline(always)]
-    pub fn count_range(&self, lo: usize, hi: usize, ctx: &Ctx, emit: &mut impl FnMut(usize, u32)) {
-        let m = &ctx.metric;
-        // The query itself is always within its own runs, at distance 0.
-        let minus_self = (!ctx.self_edges) as u32;
-        self.for_each_cell(lo, hi, |p0, p1, runs| {
-            for p in p0..p1 {
-                let q = self.query_point(p);
-                let mut count = 0u32;
-                for &(a, b) in runs {
-                    if m.any_periodic {
-                        count += (a..b)
-                            .map(|k| (m.d2(&q, &self.query_point(k)) <= m.r2) as u32)
-                            .sum::<u32>();
-                        continue;
-                    }
-                    #[cfg(target_arch = "x86_64")]
-                    if ctx.avx2 {
-                        // SAFETY: ctx.avx2 is only set when the CPU has AVX2.
-                        count +=
-                            unsafe { count_run_avx2::<D>(&self.sorted, self.len, a, b, &q, m.r2) };
-                        continue;
-                    }
-                    count += count_run::<D>(&self.sorted, self.len, a, b, &q, m.r2);
-                }
-                emit(self.order[p] as usize, count - minus_self);
+    /// Copies the candidates of `runs` into one contiguous axis-major block, padded to a
+    /// multiple of 4 with points at infinity (never within any radius), so that one SIMD loop
+    /// without a scalar tail serves every query of the cell. Returns the padded width.
+    fn gather(&self, runs: &[(usize, usize)], coords: &mut Vec<f64>, ids: &mut Vec<u32>) -> usize {
+        let n: usize = runs.iter().map(|&(a, b)| b - a).sum();
+        let width = n.div_ceil(4) * 4;
+        if coords.len() < D * width {
+            coords.resize(D * width, 0.0);
+        }
+        if ids.len() < width {
+            ids.resize(width, 0);
+        }
+        let mut k = 0;
+        for &(a, b) in runs {
+            let m = b - a;
+            for d in 0..D {
+                let (src, dst) = (d * self.len + a, d * width + k);
+                coords[dst..dst + m].copy_from_slice(&self.sorted[src..src + m]);
             }
-        });
+            ids[k..k + m].copy_from_slice(&self.order[a..b]);
+            k += m;
+        }
+        for d in 0..D {
+            coords[d * width + n..(d + 1) * width].fill(f64::INFINITY);
+        }
+        ids[n..width].fill(u32::MAX);
+        width
     }
 
     #[inline(always)]
@@ -294,42 +295,43 @@ impl<const D: usize> Grid<D> {
         hi: usize,
         ctx: &Ctx,
         found: &mut Found,
-        emit: &mut impl FnMut(usize, &mut [u32], &[[i32; 3]]),
+        emit: &mut impl FnMut(usize, &mut [u32], &[[i32; 3]]) -> bool,
     ) {
         self.for_each_cell(lo, hi, |p0, p1, runs| {
-            let candidates: usize = runs.iter().map(|&(a, b)| b - a).sum();
+            if ctx.metric.any_periodic {
+                for p in p0..p1 {
+                    let q = self.query_point(p);
+                    let i = self.order[p] as usize;
+                    found.senders.clear();
+                    found.shifts.clear();
+                    for k in runs.iter().flat_map(|&(a, b)| a..b) {
+                        let j = self.order[k] as usize;
+                        accept_at(ctx, i, j, &q, &self.query_point(k), found);
+                    }
+                    if !emit(i, &mut found.senders, &found.shifts) {
+                        return false;
+                    }
+                }
+                return true;
+            }
+            let w = self.gather(runs, &mut found.coords, &mut found.ids);
             // Slack of 4: the SIMD compaction stores whole vectors of 4 indices.
-            if found.buf.len() < candidates + 4 {
-                found.buf.resize(candidates + 4, 0);
+            if found.buf.len() < w + 4 {
+                found.buf.resize(w + 4, 0);
             }
             for p in p0..p1 {
                 let q = self.query_point(p);
                 let i = self.order[p] as usize;
-                if ctx.metric.any_periodic {
-                    found.senders.clear();
-                    found.shifts.clear();
-                    for &(a, b) in runs {
-                        for k in a..b {
-                            let j = self.order[k] as usize;
-                            accept_sorted(ctx, i, j, &q, &self.query_point(k), found);
-                        }
-                    }
-                    emit(i, &mut found.senders, &found.shifts);
-                    continue;
-                }
-                let mut n = 0;
-                let (sorted, order, len, r2) = (&self.sorted, &self.order, self.len, ctx.metric.r2);
-                for &(a, b) in runs {
-                    let out = &mut found.buf[n..];
-                    #[cfg(target_arch = "x86_64")]
-                    if ctx.avx2 {
-                        // SAFETY: ctx.avx2 is only set when the CPU has AVX2.
-                        n +=
-                            unsafe { collect_run_avx2::<D>(sorted, order, len, a, b, &q, r2, out) };
-                        continue;
-                    }
-                    n += collect_run::<D>(sorted, order, len, a, b, &q, r2, out);
-                }
+                let r2 = ctx.metric.r2;
+                let mut n = collect_block::<D>(
+                    ctx.avx2,
+                    &found.coords,
+                    &found.ids,
+                    w,
+                    &q,
+                    r2,
+                    &mut found.buf,
+                );
                 if !ctx.self_edges {
                     // Self-edges are decided by index: drop i itself, keep coincident others.
                     if let Some(k) = found.buf[..n].iter().position(|&j| j as usize == i) {
@@ -337,50 +339,43 @@ impl<const D: usize> Grid<D> {
                         n -= 1;
                     }
                 }
-                emit(i, &mut found.buf[..n], &[]);
+                if !emit(i, &mut found.buf[..n], &[]) {
+                    return false;
+                }
             }
+            true
         });
     }
+}
+
+/// Writes the ids of the neighbours of q in a gathered block to the front of `out` (which
+/// needs 4 slots of slack) and returns how many.
+#[inline(always)]
+fn collect_block<const D: usize>(
+    avx2: bool,
+    coords: &[f64],
+    ids: &[u32],
+    w: usize,
+    q: &[f64; D],
+    r2: f64,
+    out: &mut [u32],
+) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    if avx2 {
+        // SAFETY: avx2 is only set when the CPU has AVX2.
+        return unsafe { collect_run_avx2::<D>(coords, ids, w, 0, w, q, r2, out) };
+    }
+    let _ = avx2;
+    collect_run::<D>(coords, ids, w, 0, w, q, r2, out)
 }
 
 fn n_is_huge(n: usize) -> bool {
     n > (1usize << 52)
 }
 
-/// Number of points in sorted positions a..b within the radius of q (non-periodic metric).
-/// The arithmetic is exactly the canonical one: (0 + dx^2) + dy^2 (+ dz^2), dx = x_j - x_i.
-#[inline(always)]
-fn count_run<const D: usize>(
-    sorted: &[f64],
-    len: usize,
-    a: usize,
-    b: usize,
-    q: &[f64; D],
-    r2: f64,
-) -> u32 {
-    let xs = &sorted[a..b];
-    let ys = &sorted[len + a..len + b];
-    let mut c = 0u32;
-    if D == 2 {
-        for k in 0..xs.len() {
-            let dx = xs[k] - q[0];
-            let dy = ys[k] - q[1];
-            c += (dx * dx + dy * dy <= r2) as u32;
-        }
-    } else {
-        let zs = &sorted[2 * len + a..2 * len + b];
-        for k in 0..xs.len() {
-            let dx = xs[k] - q[0];
-            let dy = ys[k] - q[1];
-            let dz = zs[k] - q[D - 1];
-            c += (dx * dx + dy * dy + dz * dz <= r2) as u32;
-        }
-    }
-    c
-}
-
 /// Writes the indices of the points of a..b within the radius of q to the front of `out` and
-/// returns how many: a branchless compaction with the same arithmetic as [`count_run`].
+/// returns how many: a branchless compaction. The arithmetic is exactly the canonical one,
+/// (0 + dx^2) + dy^2 (+ dz^2) with dx = x_j - x_i, so every method agrees to the last bit.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn collect_run<const D: usize>(
@@ -469,46 +464,6 @@ unsafe fn collect_run_avx2<const D: usize>(
     n + collect_run::<D>(sorted, order, len, a + k, b, q, r2, tail)
 }
 
-/// [`count_run`] four candidates at a time, with the same arithmetic.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,popcnt")]
-#[inline]
-unsafe fn count_run_avx2<const D: usize>(
-    sorted: &[f64],
-    len: usize,
-    a: usize,
-    b: usize,
-    q: &[f64; D],
-    r2: f64,
-) -> u32 {
-    use std::arch::x86_64::*;
-    assert!(b <= len && sorted.len() >= D * len);
-    let m = b - a;
-    let xs = sorted.as_ptr().add(a);
-    let ys = sorted.as_ptr().add(len + a);
-    let zs = sorted.as_ptr().add((D - 1) * len + a);
-    let (qx, qy, qz) = (
-        _mm256_set1_pd(q[0]),
-        _mm256_set1_pd(q[1]),
-        _mm256_set1_pd(q[D - 1]),
-    );
-    let r2v = _mm256_set1_pd(r2);
-    let mut c = 0u32;
-    let mut k = 0;
-    while k + 4 <= m {
-        let dx = _mm256_sub_pd(_mm256_loadu_pd(xs.add(k)), qx);
-        let dy = _mm256_sub_pd(_mm256_loadu_pd(ys.add(k)), qy);
-        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
-        if D == 3 {
-            let dz = _mm256_sub_pd(_mm256_loadu_pd(zs.add(k)), qz);
-            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
-        }
-        c += (_mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as u32).count_ones();
-        k += 4;
-    }
-    c + count_run::<D>(sorted, len, a + k, b, q, r2)
-}
-
 /// PACK[mask]: byte shuffle that moves the 32-bit lanes selected by `mask` to the front.
 #[cfg(target_arch = "x86_64")]
 static PACK: [[u8; 16]; 16] = {
@@ -532,3 +487,41 @@ static PACK: [[u8; 16]; 16] = {
     }
     table
 };
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn simd_and_portable_compaction_agree() {
+        // Distances on a dyadic grid, many of them exactly at the radius.
+        let w = 64;
+        let mut coords = vec![0.0; 3 * w];
+        for (k, c) in coords.iter_mut().enumerate() {
+            *c = ((k * 37) % 11) as f64 * 0.125;
+        }
+        let ids: Vec<u32> = (0..w as u32).map(|k| k * 3 + 1).collect();
+        for (q, r2) in [
+            ([0.5, 0.25, 0.75], 0.25),
+            ([0.0, 0.0, 0.0], 1.0),
+            ([1.0, 1.0, 1.0], 0.0),
+        ] {
+            let mut portable = vec![0u32; w + 4];
+            let n = collect_block::<3>(false, &coords, &ids, w, &q, r2, &mut portable);
+            let want: Vec<u32> = (0..w)
+                .filter(|&k| {
+                    let d: Vec<f64> = (0..3).map(|a| coords[a * w + k] - q[a]).collect();
+                    d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= r2
+                })
+                .map(|k| ids[k])
+                .collect();
+            assert_eq!(&portable[..n], &want[..]);
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx2") {
+                let mut wide = vec![0u32; w + 4];
+                let m = collect_block::<3>(true, &coords, &ids, w, &q, r2, &mut wide);
+                assert_eq!(&wide[..m], &want[..]);
+            }
+        }
+    }
+}

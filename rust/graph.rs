@@ -1,5 +1,6 @@
 //! Radius graphs: validation, batching by `n_node`, the canonical distance every method shares,
-//! the two-pass (count, then fill) driver and the brute-force oracle.
+//! the driver (find and sort each row in parallel tasks, then copy the rows into exact-size
+//! output) and the brute-force oracle.
 //!
 //! Semantics (shared/design/neighbour-search.md): a directed edge j -> i for every pair of
 //! particles of the same graph with |x_j - x_i| <= radius, self-edges decided by index,
@@ -16,9 +17,11 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 /// The default memory guard: 2^28 edges are 4 GiB of int64 output.
 pub const DEFAULT_MAX_EDGES: u64 = 1 << 28;
 /// Below this many particles one thread beats waking a pool.
-const SERIAL_BELOW: usize = 4096;
-/// Queries per parallel task: small enough to balance clumps, large enough to amortise.
+const SERIAL_BELOW: usize = 2048;
+/// Queries per parallel task at most: small enough to balance clumps, large enough to
+/// amortise; smaller inputs get smaller tasks, so that every thread has several.
 const TASK: usize = 512;
+const MIN_TASK: usize = 64;
 
 /// How the neighbours are found; every method returns the same edges.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -327,6 +330,9 @@ pub(crate) struct Found {
     pub stack: Vec<u32>,
     /// Grow-only buffer the cell list compacts candidates into.
     pub buf: Vec<u32>,
+    /// A cell's candidates gathered into one block (axis-major) and their indices.
+    pub coords: Vec<f64>,
+    pub ids: Vec<u32>,
 }
 
 impl GraphIndex {
@@ -340,26 +346,9 @@ impl GraphIndex {
         }
     }
 
-    /// Counts the neighbours of queries lo..hi (in this index's locality-friendly order);
-    /// `emit(i, count)` for each, with i the global particle index.
-    #[inline(always)]
-    fn count_range(
-        &self,
-        lo: usize,
-        hi: usize,
-        ctx: &Ctx,
-        found: &mut Found,
-        emit: &mut impl FnMut(usize, u32),
-    ) {
-        match self {
-            GraphIndex::Cells2(g) => g.count_range(lo, hi, ctx, emit),
-            GraphIndex::Cells3(g) => g.count_range(lo, hi, ctx, emit),
-            _ => self.collect_range(lo, hi, ctx, found, &mut |i, s, _| emit(i, s.len() as u32)),
-        }
-    }
-
-    /// Collects the neighbours of queries lo..hi; `emit(i, senders, shifts)` for each, senders
-    /// unsorted, shifts empty when not asked for or all zero.
+    /// Collects the neighbours of queries lo..hi (in this index's locality-friendly order);
+    /// `emit(i, senders, shifts)` for each, i the global index, senders unsorted, shifts empty
+    /// when not asked for or all zero. Stops early when emit returns false.
     #[inline(always)]
     fn collect_range(
         &self,
@@ -367,7 +356,7 @@ impl GraphIndex {
         hi: usize,
         ctx: &Ctx,
         found: &mut Found,
-        emit: &mut impl FnMut(usize, &mut [u32], &[[i32; 3]]),
+        emit: &mut impl FnMut(usize, &mut [u32], &[[i32; 3]]) -> bool,
     ) {
         match self {
             GraphIndex::Cells2(g) => g.collect_range(lo, hi, ctx, found, emit),
@@ -375,13 +364,17 @@ impl GraphIndex {
             GraphIndex::Tree2(t) => {
                 for p in lo..hi {
                     t.collect(p, ctx, found);
-                    emit(t.original(p), &mut found.senders, &found.shifts);
+                    if !emit(t.original(p), &mut found.senders, &found.shifts) {
+                        return;
+                    }
                 }
             }
             GraphIndex::Tree3(t) => {
                 for p in lo..hi {
                     t.collect(p, ctx, found);
-                    emit(t.original(p), &mut found.senders, &found.shifts);
+                    if !emit(t.original(p), &mut found.senders, &found.shifts) {
+                        return;
+                    }
                 }
             }
             GraphIndex::Brute { start, end } => {
@@ -389,7 +382,9 @@ impl GraphIndex {
                     found.senders.clear();
                     found.shifts.clear();
                     brute_collect(ctx, *start, *end, i, found);
-                    emit(i, &mut found.senders, &found.shifts);
+                    if !emit(i, &mut found.senders, &found.shifts) {
+                        return;
+                    }
                 }
             }
         }
@@ -406,7 +401,7 @@ pub(crate) fn point<const D: usize>(coords: &[f64], i: usize) -> [f64; D] {
 /// Accepts j (at xj) as a neighbour of i (at xi) under the canonical metric; records the
 /// shift if asked. Every method ends here, so they agree to the last bit.
 #[inline(always)]
-pub(crate) fn accept_sorted<const D: usize>(
+pub(crate) fn accept_at<const D: usize>(
     ctx: &Ctx,
     i: usize,
     j: usize,
@@ -429,7 +424,7 @@ pub(crate) fn accept_sorted<const D: usize>(
 fn accept<const D: usize>(ctx: &Ctx, i: usize, j: usize, found: &mut Found) {
     let xi = point::<D>(ctx.coords, i);
     let xj = point::<D>(ctx.coords, j);
-    accept_sorted(ctx, i, j, &xi, &xj, found);
+    accept_at(ctx, i, j, &xi, &xj, found);
 }
 
 /// Image count per axis such that x[j] - x[i] + shift * L is the minimum-image displacement
@@ -477,30 +472,30 @@ impl<T> SharedMut<T> {
     }
 }
 
+/// What one task found: its queries' global indices in order and their sorted rows back to
+/// back (row lengths are the counts), ready to be copied to their offsets.
+#[derive(Default)]
+struct TaskRows {
+    queries: Vec<u32>,
+    senders: Vec<u32>,
+    /// dim values per edge, only when shifts were asked for.
+    shifts: Vec<i32>,
+}
+
 /// A reusable radius-graph searcher: keeps its buffers (and optionally its own thread pool)
 /// between calls, so repeated searches of similar size allocate nothing but the output.
+#[derive(Default)]
 pub struct Searcher {
     pool: Option<rayon::ThreadPool>,
     prepared: Option<Prepared>,
     indices: Vec<GraphIndex>,
+    tasks: Vec<(usize, usize, usize)>,
+    rows: Vec<TaskRows>,
     /// Neighbour count per particle, by original index.
     counts: Vec<u32>,
     /// Row offsets by original index (len N + 1): receiver i owns offsets[i]..offsets[i + 1].
     offsets: Vec<u64>,
-    self_edges: bool,
-}
-
-impl Default for Searcher {
-    fn default() -> Self {
-        Searcher {
-            pool: None,
-            prepared: None,
-            indices: Vec::new(),
-            counts: Vec::new(),
-            offsets: Vec::new(),
-            self_edges: true,
-        }
-    }
+    want_shifts: bool,
 }
 
 impl Searcher {
@@ -533,34 +528,55 @@ impl Searcher {
         }
     }
 
-    /// First pass: validates, indexes and counts. Returns the number of edges.
+    /// First pass: validates, indexes, finds and sorts every row. Returns the number of
+    /// edges, so the caller can allocate the output for [`Searcher::fill`].
     pub fn count<T: Real>(
         &mut self,
         positions: &[T],
         dim: usize,
         n_node: Option<&[i64]>,
         opts: &GraphOptions,
+        want_shifts: bool,
     ) -> Result<usize> {
         self.prepared = None;
         let prepared = prepare(positions, dim, n_node, opts)?;
         let mut indices = std::mem::take(&mut self.indices);
+        let mut rows = std::mem::take(&mut self.rows);
         let mut counts = std::mem::take(&mut self.counts);
         let mut offsets = std::mem::take(&mut self.offsets);
         let result = self.install(|| {
             build_indices(&prepared, opts.method, &mut indices);
-            count_all(&prepared, &indices, opts, &mut counts, &mut offsets)
+            let tasks = tasks(&indices);
+            let found = Collect {
+                prepared: &prepared,
+                indices: &indices,
+                tasks: &tasks,
+                opts,
+                want_shifts,
+            }
+            .run(&mut rows, &mut counts, &mut offsets);
+            found.map(|total| (total, tasks))
         });
         self.indices = indices;
+        self.rows = rows;
         self.counts = counts;
         self.offsets = offsets;
-        let total = result?;
+        let (total, tasks) = match result {
+            Ok(ok) => ok,
+            Err(e) => {
+                // Give back what a runaway search (a clump past max_edges) collected.
+                self.rows = Vec::new();
+                return Err(e);
+            }
+        };
+        self.tasks = tasks;
         self.prepared = Some(prepared);
-        self.self_edges = opts.self_edges;
+        self.want_shifts = want_shifts;
         Ok(total)
     }
 
-    /// Second pass: writes the edges counted by the last [`Searcher::count`] into exact-size
-    /// slices; `shifts` (len E * dim) is filled when given.
+    /// Second pass: copies the rows found by the last [`Searcher::count`] into exact-size
+    /// slices; `shifts` (len E * dim) is required exactly when count was asked for shifts.
     pub fn fill(
         &self,
         senders: &mut [i64],
@@ -573,6 +589,7 @@ impl Searcher {
             .ok_or_else(|| Error::Value("fill called before a successful count".into()))?;
         let total = *self.offsets.last().unwrap_or(&0) as usize;
         let dim = prepared.dim;
+        let n = prepared.coords.len() / dim;
         if senders.len() != total || receivers.len() != total {
             return Err(Error::Shape(format!(
                 "output needs {total} senders and receivers, got {} and {}",
@@ -580,64 +597,40 @@ impl Searcher {
                 receivers.len()
             )));
         }
-        if let Some(s) = &shifts {
-            if s.len() != total * dim {
+        match (&shifts, self.want_shifts) {
+            (Some(s), true) if s.len() == total * dim => {}
+            (None, false) => {}
+            _ => {
                 return Err(Error::Shape(format!(
-                    "shifts needs {} values, got {}",
-                    total * dim,
-                    s.len()
-                )));
+                    "shifts must be given (len {}) exactly when count was asked for them",
+                    total * dim
+                )))
             }
         }
-        let ctx = Ctx {
-            dim,
-            avx2: has_avx2(),
-            coords: &prepared.coords,
-            wraps: &prepared.wraps,
-            metric: prepared.metric,
-            self_edges: self.self_edges,
-            want_shifts: shifts.is_some(),
-        };
+        let (offsets, counts) = (&self.offsets, &self.counts);
         let out_s = SharedMut(senders.as_mut_ptr());
         let out_sh = shifts.map(|s| SharedMut(s.as_mut_ptr()));
-        let offsets = &self.offsets;
-        let run_task = |g: usize, lo: usize, hi: usize| {
-            let mut found = Found::default();
-            let mut order: Vec<usize> = Vec::new();
-            let mut write_row = |i: usize, senders: &mut [u32], shifts: &[[i32; 3]]| {
-                let o = offsets[i] as usize;
-                let len = senders.len();
-                debug_assert_eq!(o + len, offsets[i + 1] as usize);
+        let copy_task = |rows: &TaskRows| {
+            let mut k = 0;
+            for &i in &rows.queries {
+                let (o, len) = (offsets[i as usize] as usize, counts[i as usize] as usize);
                 // SAFETY: receiver i owns offsets[i]..offsets[i + 1], and every receiver is
                 // the query of exactly one task.
-                let srow = unsafe { std::slice::from_raw_parts_mut(out_s.ptr().add(o), len) };
-                if shifts.is_empty() {
-                    sort_into(senders, srow);
-                    if let Some(sh) = out_sh {
-                        // Asked for shifts without periodic axes: they are all zero.
-                        unsafe { std::slice::from_raw_parts_mut(sh.ptr().add(o * dim), len * dim) }
-                            .fill(0);
-                    }
-                } else if let Some(sh) = out_sh {
-                    order.clear();
-                    order.extend(0..len);
-                    order.sort_unstable_by_key(|&k| senders[k]);
-                    let shrow =
-                        unsafe { std::slice::from_raw_parts_mut(sh.ptr().add(o * dim), len * dim) };
-                    for (e, &k) in order.iter().enumerate() {
-                        srow[e] = senders[k] as i64;
-                        shrow[e * dim..(e + 1) * dim].copy_from_slice(&shifts[k][..dim]);
-                    }
+                let dst = unsafe { std::slice::from_raw_parts_mut(out_s.ptr().add(o), len) };
+                for (d, &j) in dst.iter_mut().zip(&rows.senders[k..k + len]) {
+                    *d = j as i64;
                 }
-            };
-            with_simd(ctx.avx2, || {
-                self.indices[g].collect_range(lo, hi, &ctx, &mut found, &mut write_row)
-            });
+                if let Some(sh) = out_sh {
+                    let dst =
+                        unsafe { std::slice::from_raw_parts_mut(sh.ptr().add(o * dim), len * dim) };
+                    dst.copy_from_slice(&rows.shifts[k * dim..(k + len) * dim]);
+                }
+                k += len;
+            }
         };
         // Receivers are written in their own sequential pass: row after row, in order, where
-        // the senders pass jumps between rows (it follows the spatial order of the queries).
-        let n = prepared.coords.len() / dim;
-        let (receivers, offsets) = (SharedMut(receivers.as_mut_ptr()), &self.offsets);
+        // the rows themselves arrive in the spatial order of the queries.
+        let receivers = SharedMut(receivers.as_mut_ptr());
         let write_receivers = |i0: usize| {
             let i1 = (i0 + TASK * 8).min(n);
             let start = offsets[i0] as usize;
@@ -652,15 +645,13 @@ impl Searcher {
                 rows[offsets[i] as usize - start..offsets[i + 1] as usize - start].fill(i as i64);
             }
         };
-        let tasks = tasks(&self.indices);
+        let rows = &self.rows[..self.tasks.len()];
         self.install(|| {
             if n < SERIAL_BELOW {
-                tasks.iter().for_each(|&(g, lo, hi)| run_task(g, lo, hi));
+                rows.iter().for_each(copy_task);
                 (0..n).step_by(TASK * 8).for_each(write_receivers);
             } else {
-                tasks
-                    .par_iter()
-                    .for_each(|&(g, lo, hi)| run_task(g, lo, hi));
+                rows.par_iter().for_each(copy_task);
                 (0..n)
                     .into_par_iter()
                     .step_by(TASK * 8)
@@ -679,7 +670,7 @@ impl Searcher {
         opts: &GraphOptions,
         want_shifts: bool,
     ) -> Result<Edges> {
-        let e = self.count(positions, dim, n_node, opts)?;
+        let e = self.count(positions, dim, n_node, opts, want_shifts)?;
         let mut edges = Edges {
             senders: vec![0; e],
             receivers: vec![0; e],
@@ -728,7 +719,7 @@ fn with_simd<R>(avx2: bool, f: impl FnOnce() -> R) -> R {
 /// (the count of smaller values) is branch-free and vectorises, where a comparison sort
 /// pays a misprediction per element.
 #[inline(always)]
-fn sort_into(row: &mut [u32], out: &mut [i64]) {
+fn sort_into(row: &mut [u32], out: &mut [u32]) {
     const SHORT: usize = 48;
     #[cfg(target_arch = "x86_64")]
     if row.len() <= SHORT && has_avx2() {
@@ -744,13 +735,11 @@ fn sort_into(row: &mut [u32], out: &mut [i64]) {
         let width = row.len().div_ceil(8) * 8;
         for &x in row.iter() {
             let rank: u32 = padded[..width].iter().map(|&y| (y < x) as u32).sum();
-            out[rank as usize] = x as i64;
+            out[rank as usize] = x;
         }
     } else {
         row.sort_unstable();
-        for (dst, &j) in out.iter_mut().zip(row.iter()) {
-            *dst = j as i64;
-        }
+        out.copy_from_slice(row);
     }
 }
 
@@ -758,7 +747,7 @@ fn sort_into(row: &mut [u32], out: &mut [i64]) {
 /// 8 comparisons per instruction (indices are biased by 2^31 for a signed compare).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,popcnt")]
-unsafe fn rank_sort_avx2(row: &[u32], out: &mut [i64]) {
+unsafe fn rank_sort_avx2(row: &[u32], out: &mut [u32]) {
     use std::arch::x86_64::*;
     const BIAS: u32 = 0x8000_0000;
     assert!(row.len() <= 48 && out.len() == row.len());
@@ -778,18 +767,20 @@ unsafe fn rank_sort_avx2(row: &[u32], out: &mut [i64]) {
             let smaller = _mm256_cmpgt_epi32(xb, *vk);
             rank += (_mm256_movemask_ps(_mm256_castsi256_ps(smaller)) as u32).count_ones();
         }
-        out[rank as usize] = x as i64;
+        out[rank as usize] = x;
     }
 }
 
-/// (graph, first query, end) slices of every graph's query order, TASK queries each.
+/// (graph, first query, end) slices of every graph's query order.
 fn tasks(indices: &[GraphIndex]) -> Vec<(usize, usize, usize)> {
+    let total: usize = indices.iter().map(|i| i.len()).sum();
+    let size = (total / (8 * rayon::current_num_threads())).clamp(MIN_TASK, TASK);
     let mut t = Vec::new();
     for (g, index) in indices.iter().enumerate() {
         let n = index.len();
         let mut lo = 0;
         while lo < n {
-            let hi = (lo + TASK).min(n);
+            let hi = (lo + size).min(n);
             t.push((g, lo, hi));
             lo = hi;
         }
@@ -845,69 +836,116 @@ fn build_one(prepared: &Prepared, method: Method, g: usize, slot: &mut GraphInde
     }
 }
 
-/// Counts every query's neighbours into `counts` (by original index) and their prefix sums
-/// into `offsets`; stops early, with an error, once the total passes `max_edges`.
-fn count_all(
-    prepared: &Prepared,
-    indices: &[GraphIndex],
-    opts: &GraphOptions,
-    counts: &mut Vec<u32>,
-    offsets: &mut Vec<u64>,
-) -> Result<usize> {
-    let n = prepared.coords.len() / prepared.dim;
-    let ctx = Ctx {
-        dim: prepared.dim,
-        avx2: has_avx2(),
-        coords: &prepared.coords,
-        wraps: &prepared.wraps,
-        metric: prepared.metric,
-        self_edges: opts.self_edges,
-        want_shifts: false,
-    };
-    counts.clear();
-    counts.resize(n, 0);
-    let out = SharedMut(counts.as_mut_ptr());
-    let total = AtomicU64::new(0);
-    let over = AtomicBool::new(false);
-    let run_task = |&(g, lo, hi): &(usize, usize, usize)| {
-        if over.load(Ordering::Relaxed) {
-            return;
-        }
-        let mut found = Found::default();
-        let mut sum = 0u64;
-        with_simd(ctx.avx2, || {
-            indices[g].count_range(lo, hi, &ctx, &mut found, &mut |i, c| {
+/// The first pass over every task: find each query's neighbours, sort the row, keep it in
+/// the task's buffer. Checks the max_edges guard every CHECK_EVERY edges, so a clump stops
+/// soon after passing it rather than after collecting everything.
+struct Collect<'a> {
+    prepared: &'a Prepared,
+    indices: &'a [GraphIndex],
+    tasks: &'a [(usize, usize, usize)],
+    opts: &'a GraphOptions,
+    want_shifts: bool,
+}
+
+const CHECK_EVERY: u64 = 1 << 20;
+
+impl Collect<'_> {
+    fn run(
+        &self,
+        rows: &mut Vec<TaskRows>,
+        counts: &mut Vec<u32>,
+        offsets: &mut Vec<u64>,
+    ) -> Result<usize> {
+        let prepared = self.prepared;
+        let (n, dim) = (prepared.coords.len() / prepared.dim, prepared.dim);
+        let ctx = Ctx {
+            dim,
+            avx2: has_avx2(),
+            coords: &prepared.coords,
+            wraps: &prepared.wraps,
+            metric: prepared.metric,
+            self_edges: self.opts.self_edges,
+            want_shifts: self.want_shifts,
+        };
+        counts.clear();
+        counts.resize(n, 0);
+        // Keep the buffers of earlier calls: a searcher called every step reuses them.
+        rows.resize_with(self.tasks.len().max(rows.len()), TaskRows::default);
+        let out_counts = SharedMut(counts.as_mut_ptr());
+        let total = AtomicU64::new(0);
+        let over = AtomicBool::new(false);
+        let max_edges = self.opts.max_edges;
+        let add = |edges: u64| {
+            if total.fetch_add(edges, Ordering::Relaxed) + edges > max_edges {
+                over.store(true, Ordering::Relaxed);
+            }
+        };
+        let run_task = |(task_rows, &(g, lo, hi)): (&mut TaskRows, &(usize, usize, usize))| {
+            task_rows.queries.clear();
+            task_rows.senders.clear();
+            task_rows.shifts.clear();
+            if over.load(Ordering::Relaxed) {
+                return;
+            }
+            let mut found = Found::default();
+            let mut order: Vec<usize> = Vec::new();
+            let mut pending = 0u64;
+            let mut keep_row = |i: usize, senders: &mut [u32], shifts: &[[i32; 3]]| -> bool {
+                let len = senders.len();
+                task_rows.queries.push(i as u32);
                 // SAFETY: each particle is the query of exactly one task.
-                unsafe { *out.ptr().add(i) = c };
-                sum += c as u64;
-            })
-        });
-        if total.fetch_add(sum, Ordering::Relaxed) + sum > opts.max_edges {
-            over.store(true, Ordering::Relaxed);
+                unsafe { *out_counts.ptr().add(i) = len as u32 };
+                let start = task_rows.senders.len();
+                task_rows.senders.resize(start + len, 0);
+                let dst = &mut task_rows.senders[start..];
+                if !self.want_shifts {
+                    sort_into(senders, dst);
+                } else {
+                    order.clear();
+                    order.extend(0..len);
+                    order.sort_unstable_by_key(|&k| senders[k]);
+                    for (e, &k) in order.iter().enumerate() {
+                        dst[e] = senders[k];
+                        // No periodic axis: the shifts are all zero.
+                        let sh = shifts.get(k).copied().unwrap_or_default();
+                        task_rows.shifts.extend_from_slice(&sh[..dim]);
+                    }
+                }
+                pending += len as u64;
+                if pending >= CHECK_EVERY {
+                    add(std::mem::take(&mut pending));
+                    return !over.load(Ordering::Relaxed);
+                }
+                true
+            };
+            with_simd(ctx.avx2, || {
+                self.indices[g].collect_range(lo, hi, &ctx, &mut found, &mut keep_row)
+            });
+            add(pending);
+        };
+        if n < SERIAL_BELOW {
+            rows.iter_mut().zip(self.tasks.iter()).for_each(run_task);
+        } else {
+            rows.par_iter_mut()
+                .zip(self.tasks.par_iter())
+                .for_each(run_task);
         }
-    };
-    let tasks = tasks(indices);
-    if n < SERIAL_BELOW {
-        tasks.iter().for_each(run_task);
-    } else {
-        tasks.par_iter().for_each(run_task);
+        if over.load(Ordering::Relaxed) {
+            return Err(Error::TooManyEdges {
+                at_least: total.load(Ordering::Relaxed),
+                max_edges,
+            });
+        }
+        offsets.clear();
+        offsets.reserve(n + 1);
+        let mut acc = 0u64;
+        offsets.push(0);
+        for &c in counts.iter() {
+            acc += c as u64;
+            offsets.push(acc);
+        }
+        Ok(acc as usize)
     }
-    let total = total.load(Ordering::Relaxed);
-    if over.load(Ordering::Relaxed) {
-        return Err(Error::TooManyEdges {
-            at_least: total,
-            max_edges: opts.max_edges,
-        });
-    }
-    offsets.clear();
-    offsets.reserve(n + 1);
-    let mut acc = 0u64;
-    offsets.push(0);
-    for &c in counts.iter() {
-        acc += c as u64;
-        offsets.push(acc);
-    }
-    Ok(acc as usize)
 }
 
 /// Radius graph in one call (a fresh [`Searcher`] on the global pool).
@@ -1008,6 +1046,26 @@ mod tests {
                     naive(&pts, dim, &[0, n], &opts),
                     "dim {dim} n {n}"
                 );
+            }
+        }
+    }
+
+    #[test]
+    fn rank_sort_and_comparison_sort_agree() {
+        let row: Vec<u32> = (0..47u32)
+            .map(|k| (k * 2_654_435_761u32) ^ 0x8000_0003)
+            .collect();
+        for len in [0, 1, 7, 8, 9, 31, 47] {
+            let mut want = row[..len].to_vec();
+            want.sort_unstable();
+            let mut got = vec![0u32; len];
+            sort_into(&mut row[..len].to_vec(), &mut got);
+            assert_eq!(got, want);
+            #[cfg(target_arch = "x86_64")]
+            if has_avx2() {
+                let mut wide = vec![0u32; len];
+                unsafe { rank_sort_avx2(&row[..len], &mut wide) };
+                assert_eq!(wide, want);
             }
         }
     }

@@ -2,7 +2,7 @@
 //! pruning. Slower than the grid at simulation densities, but indifferent to how the points are
 //! spread, so it serves sparse clouds, far outliers, and as a second opinion in tests.
 
-use crate::graph::{accept_sorted, Ctx, Found, Prepared};
+use crate::graph::{accept_at, Ctx, Found, Prepared};
 
 const LEAF: usize = 12;
 const NO_CHILD: u32 = u32::MAX;
@@ -124,7 +124,7 @@ impl<const D: usize> KdTree<D> {
                 }
                 if node.left == NO_CHILD {
                     for (j, x) in &self.items[node.start as usize..node.end as usize] {
-                        accept_sorted(ctx, i, *j as usize, &q, x, found);
+                        accept_at(ctx, i, *j as usize, &q, x, found);
                     }
                 } else {
                     stack.push(node.right);

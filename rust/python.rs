@@ -104,7 +104,7 @@ fn search<'py, T: Real + Element>(
     let pos = slice(positions)?;
     let dim = positions.shape()[1];
     let e = py
-        .detach(|| searcher.count(pos, dim, n_node, opts))
+        .detach(|| searcher.count(pos, dim, n_node, opts, want_shifts))
         .map_err(to_py)?;
     // SAFETY: fill() writes every element before Python sees the arrays.
     let edges = unsafe { PyArray2::<i64>::new(py, [2, e], false) };
