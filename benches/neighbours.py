@@ -29,10 +29,15 @@ default threads); ns/edge is per directed edge of the output.
 
 from __future__ import annotations
 
+import os
+
+# OpenBLAS worker threads busy-wait after any numpy call that used them and would take a core
+# from gns's threads; no peer's neighbour search uses BLAS, so one BLAS thread is fair to all.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import math
 import multiprocessing as mp
-import os
 import platform
 import resource
 import signal

@@ -1,7 +1,10 @@
 """gns: the Graph Network-based Simulator with a Rust core.
 
-The public API; `gns._core` is private and reached only through `gns.ops`.
+The public API; `gns._core` is private and reached only through `gns.ops`. The model (which
+needs torch) is imported on first use, so `import gns` stays quick for the Rust core alone.
 """
+
+from typing import Any
 
 from gns.ops import (
     DEFAULT_MAX_EDGES,
@@ -13,13 +16,35 @@ from gns.ops import (
     wall_features,
 )
 
+# Name -> module of the torch-based API, loaded lazily (PEP 562).
+_LAZY = {
+    "Config": "gns.config",
+    "load_config": "gns.config",
+    "EncodeProcessDecode": "gns.model",
+    "LearnedSimulator": "gns.simulator",
+    "Scene": "gns.simulator",
+}
+
 __all__ = [
     "DEFAULT_MAX_EDGES",
+    "Config",
+    "EncodeProcessDecode",
+    "LearnedSimulator",
     "Obstacle",
     "RadiusSearcher",
+    "Scene",
     "euler_step",
+    "load_config",
     "obstacle_features",
     "radius_graph",
     "wall_features",
 ]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'gns' has no attribute {name!r}")

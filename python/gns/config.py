@@ -1,0 +1,276 @@
+"""Settings as frozen dataclasses with the paper's defaults, loaded from TOML, never executed.
+
+    [model]          the encoder-processor-decoder (section C.1)
+    [noise]          input noise (sections B.3 and C.2)
+    [normalization]  running statistics (B.2) or the dataset's metadata.json
+    [scene]          how a dataset's facts become the model's inputs (walls, context, ...)
+
+`from_dict` builds any of these dataclasses (or `Scene`) from a plain dict, checking every value's
+type and rejecting keys it does not know with a ValueError that names the key, so a typo in a
+config file fails loudly instead of silently training the default model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, TypeVar
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = [
+    "Config",
+    "ModelConfig",
+    "NoiseConfig",
+    "NormalizationConfig",
+    "SceneConfig",
+    "NOISE_TYPES",
+    "from_dict",
+    "load_config",
+    "to_dict",
+]
+
+NOISE_TYPES = ("random_walk", "only_last", "correlated", "uncorrelated")
+NoiseType = Literal["random_walk", "only_last", "correlated", "uncorrelated"]
+NormalizationSource = Literal["running", "metadata"]
+
+
+def _positive(owner: object, *names: str) -> None:
+    for name in names:
+        value = getattr(owner, name)
+        if not value > 0:
+            raise ValueError(f"{type(owner).__name__}.{name} must be positive, got {value!r}")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The encoder-processor-decoder and its section C.1 options.
+
+    velocity_history: C, the number of input velocities (the model reads C + 1 positions).
+    mlp_encoder_decoder: False replaces the encoder and decoder MLPs by single linear layers.
+    self_edges: include the edge i -> i in the radius graph.
+    global_latent: feed the scene's global context as a true global input with a global latent
+        updated at every step; False appends the context to every node instead.
+    edge_latent_updates: False keeps the encoded edge latents fixed through the processor.
+    add_gravity: add the scene's gravity to the decoded acceleration, so the network predicts
+        only the deviation from free fall.
+    """
+
+    latent_size: int = 128
+    mlp_hidden_size: int = 128
+    mlp_hidden_layers: int = 2
+    message_passing_steps: int = 10
+    layer_norm: bool = True
+    mlp_encoder_decoder: bool = True
+    self_edges: bool = True
+    global_latent: bool = False
+    edge_latent_updates: bool = True
+    add_gravity: bool = False
+    particle_type_embedding_size: int = 16
+    velocity_history: int = 5
+
+    def __post_init__(self) -> None:
+        _positive(
+            self,
+            "latent_size",
+            "mlp_hidden_size",
+            "message_passing_steps",
+            "particle_type_embedding_size",
+            "velocity_history",
+        )
+        if self.mlp_hidden_layers < 0:
+            raise ValueError(
+                f"ModelConfig.mlp_hidden_layers must be >= 0, got {self.mlp_hidden_layers}"
+            )
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Input noise.
+
+    type: how velocity noise accumulates over the C input steps (section C.2).
+    std: standard deviation of the velocity noise at the last input step (every type is scaled
+        so this is the same, as in C.2), per frame.
+    correct_position_fraction: 0 trains the model to cancel the noise in the input velocity
+        (the paper's default), 1 to cancel the noise in the input position.
+    """
+
+    type: NoiseType = "random_walk"
+    std: float = 3e-4
+    correct_position_fraction: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.type not in NOISE_TYPES:
+            raise ValueError(f"NoiseConfig.type must be one of {NOISE_TYPES}, got {self.type!r}")
+        if not (math.isfinite(self.std) and self.std >= 0):
+            raise ValueError(f"NoiseConfig.std must be finite and >= 0, got {self.std}")
+        if not 0.0 <= self.correct_position_fraction <= 1.0:
+            raise ValueError(
+                "NoiseConfig.correct_position_fraction must be in [0, 1], got "
+                f"{self.correct_position_fraction}"
+            )
+
+
+@dataclass(frozen=True)
+class NormalizationConfig:
+    """source: "running" accumulates exact statistics of everything seen in training, after
+    noise (B.2); "metadata" uses metadata.json's statistics with the velocity and acceleration
+    std inflated by the noise std (formats.md).
+    min_std: a std below this is treated as 1 (a constant feature is centred, not blown up).
+    """
+
+    source: NormalizationSource = "running"
+    min_std: float = 1e-7
+
+    def __post_init__(self) -> None:
+        if self.source not in ("running", "metadata"):
+            raise ValueError(
+                f"NormalizationConfig.source must be 'running' or 'metadata', got {self.source!r}"
+            )
+        if not self.min_std >= 0:
+            raise ValueError(f"NormalizationConfig.min_std must be >= 0, got {self.min_std}")
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """How a dataset's metadata becomes the model's inputs (see simulator.Scene.from_metadata).
+
+    radius: connectivity radius; None takes metadata's default_connectivity_radius.
+    walls: add clipped wall distances when the metadata has bounds (non-periodic axes only).
+    context: use the dataset's global context (step_context) when it has one.
+    material_property: use the per-particle material property; None uses it only when the
+        dataset has no context (sand2d-taichi carries the friction angle as both).
+    kinematic_particle_types: None takes the dataset's (default {3}).
+    gravity: physical gravity (m/s^2, one value per axis) for model.add_gravity; converted to
+        per-frame units with the dataset's dt.
+    """
+
+    radius: float | None = None
+    walls: bool = True
+    context: bool = True
+    material_property: bool | None = None
+    kinematic_particle_types: tuple[int, ...] | None = None
+    gravity: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.radius is not None:
+            _positive(self, "radius")
+
+
+@dataclass(frozen=True)
+class Config:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    normalization: NormalizationConfig = field(default_factory=NormalizationConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+
+
+T = TypeVar("T")
+
+
+def _convert(value: Any, hint: Any, where: str) -> Any:
+    """`value` checked (and lists made tuples) against the type hint `hint`."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for option in args:
+            if option is type(None):
+                continue
+            try:
+                return _convert(value, option, where)
+            except ValueError as err:
+                errors.append(str(err))
+        raise ValueError(errors[0] if len(errors) == 1 else f"{where}: got {value!r}")
+    if origin is Literal:
+        if value not in args:
+            raise ValueError(f"{where} must be one of {list(args)}, got {value!r}")
+        return value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{where} must be a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise ValueError(f"{where} must have {len(args)} items, got {len(value)}")
+        pairs = enumerate(zip(args, value, strict=True))
+        return tuple(_convert(v, a, f"{where}[{i}]") for i, (a, v) in pairs)
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        if isinstance(value, hint):
+            return value
+        if not isinstance(value, Mapping):
+            raise ValueError(f"{where} must be a table of settings, got {value!r}")
+        return from_dict(hint, value, where)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ValueError(f"{where} must be true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ValueError(f"{where} must be a whole number, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{where} must be a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ValueError(f"{where} must be a string, got {value!r}")
+        return value
+    raise TypeError(f"{where}: unsupported setting type {hint!r}")
+
+
+def from_dict(cls: type[T], data: Mapping[str, Any], where: str = "") -> T:
+    """Build the dataclass `cls` from a (possibly nested) dict; unknown keys raise ValueError."""
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{where or cls.__name__} must be a table of settings, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+    prefix = f"{where}." if where else ""
+    for key in data:
+        if key not in fields:
+            raise ValueError(
+                f"unknown setting '{prefix}{key}' for {cls.__name__}; "
+                f"known: {', '.join(sorted(fields))}"
+            )
+    kwargs = {key: _convert(value, hints[key], f"{prefix}{key}") for key, value in data.items()}
+    return cls(**kwargs)
+
+
+def to_dict(obj: Any) -> dict[str, Any]:
+    """A dataclass as a plain dict (tuples become lists) that `from_dict` reads back."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, (tuple, list)):
+            return [plain(v) for v in value]
+        if isinstance(value, (frozenset, set)):
+            return sorted(plain(v) for v in value)
+        return value
+
+    return plain(dataclasses.asdict(obj))
+
+
+def load_config(path: str | os.PathLike[str]) -> Config:
+    """Read a TOML file into a Config; missing settings keep the paper's defaults."""
+    with open(path, "rb") as f:
+        try:
+            data = tomllib.load(f)
+        except tomllib.TOMLDecodeError as err:
+            raise ValueError(f"{os.fspath(path)}: not valid TOML: {err}") from err
+    try:
+        return from_dict(Config, data)
+    except ValueError as err:
+        raise ValueError(f"{os.fspath(path)}: {err}") from err

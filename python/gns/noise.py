@@ -1,0 +1,135 @@
+"""Input noise of sections B.3 and C.2: velocity noise, positions adjusted to match.
+
+Every function takes a position sequence (N, C + 1, D) and returns position noise of the same
+shape. The noise is drawn on the C input velocities and integrated into positions (the first
+position is left as it is), so velocity_k = p_k - p_{k-1} of the noisy sequence is exactly the
+clean velocity plus the velocity noise. Each type is scaled so the velocity noise at the last
+input step has standard deviation `std` (C.2: "the variance of the velocity noise at the last
+step is constant"). Kinematic particles get no noise.
+
+    only_last     noise on the most recent velocity only
+    correlated    one draw per particle and axis, the same for all C velocities
+    uncorrelated  an independent draw for each velocity
+    random_walk   independent increments of std / sqrt(C), summed over the steps (the default)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from gns.config import NoiseConfig
+
+__all__ = [
+    "NOISE_FUNCTIONS",
+    "correlated",
+    "only_last",
+    "random_walk",
+    "sample_noise",
+    "uncorrelated",
+]
+
+
+def _draw(shape: tuple[int, ...], like: Tensor, std: float, generator: torch.Generator | None):
+    noise = torch.randn(shape, generator=generator, dtype=like.dtype, device=like.device)
+    return noise * std
+
+
+def _integrate(
+    position_sequence: Tensor, velocity_noise: Tensor, kinematic: Tensor | None
+) -> Tensor:
+    """Position noise whose finite differences are `velocity_noise` (N, C, D)."""
+    first = torch.zeros_like(position_sequence[:, :1])
+    noise = torch.cat([first, torch.cumsum(velocity_noise, dim=1)], dim=1)
+    if kinematic is not None:
+        noise = noise * (~kinematic.to(torch.bool)).to(noise.dtype)[:, None, None]
+    return noise
+
+
+def _velocity_shape(position_sequence: Tensor) -> tuple[int, int, int]:
+    if position_sequence.ndim != 3 or position_sequence.shape[1] < 2:
+        raise ValueError(
+            "position_sequence must be (N, C + 1, D) with C >= 1, got "
+            f"{tuple(position_sequence.shape)}"
+        )
+    n, steps, d = position_sequence.shape
+    return n, steps - 1, d
+
+
+def random_walk(
+    position_sequence: Tensor,
+    std: float = 3e-4,
+    *,
+    kinematic: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Velocity noise as a random walk over the C steps; std at the last step."""
+    n, c, d = _velocity_shape(position_sequence)
+    increments = _draw((n, c, d), position_sequence, std / math.sqrt(c), generator)
+    return _integrate(position_sequence, torch.cumsum(increments, dim=1), kinematic)
+
+
+def uncorrelated(
+    position_sequence: Tensor,
+    std: float = 3e-4,
+    *,
+    kinematic: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Independent velocity noise of std `std` on each of the C steps."""
+    n, c, d = _velocity_shape(position_sequence)
+    return _integrate(
+        position_sequence, _draw((n, c, d), position_sequence, std, generator), kinematic
+    )
+
+
+def correlated(
+    position_sequence: Tensor,
+    std: float = 3e-4,
+    *,
+    kinematic: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """One velocity noise draw per particle and axis, applied to all C steps."""
+    n, c, d = _velocity_shape(position_sequence)
+    velocity_noise = _draw((n, 1, d), position_sequence, std, generator).expand(n, c, d)
+    return _integrate(position_sequence, velocity_noise, kinematic)
+
+
+def only_last(
+    position_sequence: Tensor,
+    std: float = 3e-4,
+    *,
+    kinematic: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Velocity noise on the most recent step only (moves only the most recent position)."""
+    n, c, d = _velocity_shape(position_sequence)
+    velocity_noise = torch.zeros(
+        n, c, d, dtype=position_sequence.dtype, device=position_sequence.device
+    )
+    velocity_noise[:, -1] = _draw((n, d), position_sequence, std, generator)
+    return _integrate(position_sequence, velocity_noise, kinematic)
+
+
+NOISE_FUNCTIONS: dict[str, Callable[..., Tensor]] = {
+    "random_walk": random_walk,
+    "only_last": only_last,
+    "correlated": correlated,
+    "uncorrelated": uncorrelated,
+}
+
+
+def sample_noise(
+    config: NoiseConfig,
+    position_sequence: Tensor,
+    *,
+    kinematic: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Position noise (N, C + 1, D) of the configured type and std."""
+    function = NOISE_FUNCTIONS[config.type]
+    return function(position_sequence, config.std, kinematic=kinematic, generator=generator)

@@ -1,0 +1,590 @@
+"""LearnedSimulator: positions in, positions out, with EncodeProcessDecode in between.
+
+    preprocess   position sequence (N, C + 1, D) -> velocities, radius graph (Rust), wall and
+                 obstacle distances, type embedding, context -> normalised node / edge features
+    model        EncodeProcessDecode -> normalised acceleration (N, D)
+    postprocess  de-normalise (+ gravity) -> semi-implicit Euler with dt = 1 frame -> (N, D)
+
+`target_normalized_acceleration` is the inverse of the postprocess, next to its twin.
+
+What the model is built from is a `Scene`, the facts of one dataset: a scene without walls gets
+no wall features, one particle type gets no embedding, no context gets no global input. Every
+input width follows from the scene; nothing here knows a particular dataset.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+import gns.ops as ops
+from gns.config import Config, SceneConfig
+from gns.model import EncodeProcessDecode
+from gns.noise import sample_noise
+from gns.normalization import FixedNormalizer, Normalizer, RunningNormalizer
+
+__all__ = ["LearnedSimulator", "Scene"]
+
+
+class _Statistics(Protocol):
+    """metadata.json's statistics: gns.data.Metadata or gns.data.Statistics."""
+
+    vel_mean: Any
+    vel_std: Any
+    acc_mean: Any
+    acc_std: Any
+    context_mean: Any
+    context_std: Any
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The facts of a dataset that shape the model's inputs.
+
+    dim: D. radius: connectivity radius R. particle_types: the type ids that occur (an
+    embedding only when there are several). bounds: D pairs (lo, hi), or None; walls: add the
+    clipped distances to the bounds on every non-periodic axis (2 features per axis).
+    periodic: per-axis flags (the box is `bounds`). context_size: width of the per-graph global
+    context (0: none). material_property_size: width of the per-particle material property.
+    kinematic_particle_types: no noise, no loss, ground truth in rollouts. gravity: per-frame
+    acceleration (D,), used by model.add_gravity. wall_clip: wall distances are clipped to
+    [-wall_clip, wall_clip] radii.
+    """
+
+    dim: int
+    radius: float
+    particle_types: tuple[int, ...]
+    bounds: tuple[tuple[float, float], ...] | None = None
+    walls: bool = False
+    periodic: tuple[bool, ...] = ()
+    context_size: int = 0
+    material_property_size: int = 0
+    kinematic_particle_types: tuple[int, ...] = (3,)
+    gravity: tuple[float, ...] | None = None
+    wall_clip: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.dim not in (2, 3):
+            raise ValueError(f"Scene.dim must be 2 or 3 (the radius graph's), got {self.dim}")
+        if not (math.isfinite(self.radius) and self.radius > 0):
+            raise ValueError(f"Scene.radius must be positive, got {self.radius}")
+        if not self.particle_types:
+            raise ValueError("Scene.particle_types must name at least one type")
+        object.__setattr__(self, "particle_types", tuple(sorted(set(self.particle_types))))
+        object.__setattr__(
+            self, "kinematic_particle_types", tuple(sorted(set(self.kinematic_particle_types)))
+        )
+        if self.bounds is not None and len(self.bounds) != self.dim:
+            raise ValueError(f"Scene.bounds has {len(self.bounds)} pairs for dim {self.dim}")
+        if not self.periodic:
+            object.__setattr__(self, "periodic", (False,) * self.dim)
+        if len(self.periodic) != self.dim:
+            raise ValueError(f"Scene.periodic has {len(self.periodic)} flags for dim {self.dim}")
+        if (self.walls or any(self.periodic)) and self.bounds is None:
+            raise ValueError("walls and periodic axes need Scene.bounds")
+        if self.gravity is not None and len(self.gravity) != self.dim:
+            raise ValueError(f"Scene.gravity has {len(self.gravity)} values for dim {self.dim}")
+        if self.context_size < 0 or self.material_property_size < 0:
+            raise ValueError("context_size and material_property_size must be >= 0")
+        if not self.wall_clip > 0:
+            raise ValueError(f"Scene.wall_clip must be positive, got {self.wall_clip}")
+
+    @property
+    def wall_axes(self) -> tuple[int, ...]:
+        """Axes that get wall features: all non-periodic ones when the scene has walls."""
+        if not self.walls:
+            return ()
+        return tuple(a for a in range(self.dim) if not self.periodic[a])
+
+    @classmethod
+    def from_metadata(
+        cls, metadata: Any, particle_types: Iterable[int], config: SceneConfig | None = None
+    ) -> Scene:
+        """A scene from a gns.data.Metadata and the particle types that occur in the data."""
+        config = config or SceneConfig()
+        context_size = 0
+        if config.context and metadata.context_mean is not None:
+            context_size = len(metadata.context_mean)
+        use_material = config.material_property
+        if use_material is None:
+            use_material = context_size == 0
+        gravity = None
+        if config.gravity is not None:
+            if len(config.gravity) != metadata.dim:
+                raise ValueError(
+                    f"scene.gravity has {len(config.gravity)} values for dim {metadata.dim}"
+                )
+            # The model works per frame: an acceleration in m/s^2 times dt^2.
+            gravity = tuple(g * metadata.dt**2 for g in config.gravity)
+        kinematic = config.kinematic_particle_types
+        if kinematic is None:
+            kinematic = tuple(metadata.kinematic_particle_types)
+        return cls(
+            dim=metadata.dim,
+            radius=config.radius or metadata.default_connectivity_radius,
+            particle_types=tuple(int(t) for t in particle_types),
+            bounds=tuple(tuple(pair) for pair in metadata.bounds),
+            walls=config.walls,
+            periodic=tuple(metadata.periodic_boundary_conditions),
+            context_size=context_size,
+            material_property_size=metadata.material_feature_len if use_material else 0,
+            kinematic_particle_types=tuple(kinematic),
+            gravity=gravity,
+            wall_clip=metadata.boundary_augment,
+        )
+
+    @classmethod
+    def from_dataset(cls, dataset: Any, config: SceneConfig | None = None) -> Scene:
+        """A scene from a gns.data.Dataset (reads every trajectory once for its types)."""
+        types: set[int] = set()
+        for trajectory in dataset:
+            types.update(int(t) for t in np.unique(trajectory.particle_type))
+        return cls.from_metadata(dataset.metadata, sorted(types), config)
+
+
+def _as_rows(x: Tensor | np.ndarray | float, rows: int, width: int, name: str) -> Tensor:
+    """x as (rows, width): a scalar or a (width,) vector is shared by all rows, a (rows,)
+    vector is one value per row when width is 1."""
+    t = torch.as_tensor(x)
+    if t.ndim == 0:
+        t = t.reshape(1, 1)
+    elif t.ndim == 1:
+        t = t[:, None] if width == 1 else t[None, :]
+    if t.ndim == 2 and t.shape[0] == 1:
+        t = t.expand(rows, -1)
+    if t.shape != (rows, width):
+        raise ValueError(
+            f"{name} must be ({rows}, {width}), got shape {tuple(torch.as_tensor(x).shape)}"
+        )
+    return t
+
+
+class LearnedSimulator(nn.Module):
+    """The GNS: features from positions, EncodeProcessDecode, Euler update.
+
+    scene: the dataset's facts (Scene.from_metadata / from_dataset).
+    config: gns.config.Config (model, noise and normalisation sections are used here).
+    statistics: metadata.json's statistics (a gns.data.Metadata or Statistics); required when
+        config.normalization.source == "metadata", ignored otherwise.
+    obstacles: static gns.Obstacle shapes; each adds its clipped distance vector (D) per node
+        (not part of the Scene: pass the same shapes again when restoring a checkpoint).
+
+    Velocities, accelerations and the context are normalised (running or metadata statistics);
+    the material property is appended as given (an O(1) quantity such as tan(friction angle),
+    as geoelements does; metadata.json has no statistics for it).
+
+    Shapes: position_sequence (N, C + 1, D), most recent last; particle_type (N,) int64;
+    n_node (G,) particles per graph (default one graph); context (G, K) or (K,);
+    material_property (), (N,) or (N, M).
+    """
+
+    particle_type_ids: Tensor
+    kinematic_type_ids: Tensor
+    gravity: Tensor
+    bounds: Tensor
+
+    def __init__(
+        self,
+        scene: Scene,
+        config: Config | None = None,
+        *,
+        statistics: _Statistics | None = None,
+        obstacles: Sequence[ops.Obstacle] = (),
+    ) -> None:
+        super().__init__()
+        config = config or Config()
+        self.scene, self.config = scene, config
+        self.obstacles = tuple(obstacles)
+        dim, model_config = scene.dim, config.model
+        if model_config.add_gravity and scene.gravity is None:
+            raise ValueError("model.add_gravity needs the scene's gravity (scene.gravity)")
+        for o in self.obstacles:
+            if o.dim != dim:
+                raise ValueError(f"obstacle {o!r} is {o.dim}D but the scene is {dim}D")
+
+        long = torch.int64
+        self.register_buffer("particle_type_ids", torch.tensor(scene.particle_types, dtype=long))
+        kinematic = torch.tensor(scene.kinematic_particle_types, dtype=long)
+        self.register_buffer("kinematic_type_ids", kinematic)
+        gravity = scene.gravity if model_config.add_gravity else None
+        self.register_buffer("gravity", torch.tensor(gravity or (0.0,) * dim, dtype=torch.float64))
+        if scene.bounds is not None:
+            bounds = torch.tensor(scene.bounds, dtype=torch.float64)
+        else:
+            bounds = torch.zeros(dim, 2, dtype=torch.float64)
+        self.register_buffer("bounds", bounds)
+
+        self.particle_type_embedding: nn.Embedding | None = None
+        embedding_size = 0
+        if len(scene.particle_types) > 1:
+            embedding_size = model_config.particle_type_embedding_size
+            self.particle_type_embedding = nn.Embedding(len(scene.particle_types), embedding_size)
+
+        self.velocity_normalizer, self.acceleration_normalizer = self._normalizers(statistics)
+        self.context_normalizer: Normalizer | None = None
+        if scene.context_size:
+            self.context_normalizer = self._context_normalizer(statistics)
+
+        global_size = scene.context_size if model_config.global_latent else 0
+        self.node_input_size = (
+            model_config.velocity_history * dim
+            + 2 * len(scene.wall_axes)
+            + dim * len(self.obstacles)
+            + (scene.context_size - global_size)
+            + scene.material_property_size
+            + embedding_size
+        )
+        self.edge_input_size = dim + 1
+        self.model = EncodeProcessDecode(
+            self.node_input_size, self.edge_input_size, dim, model_config, global_size
+        )
+
+    # ------------------------------------------------------------------ construction helpers
+
+    @classmethod
+    def from_metadata(
+        cls,
+        metadata: Any,
+        particle_types: Iterable[int],
+        config: Config | None = None,
+        **kwargs: Any,
+    ) -> LearnedSimulator:
+        """Scene and (in metadata mode) statistics from one gns.data.Metadata."""
+        config = config or Config()
+        scene = Scene.from_metadata(metadata, particle_types, config.scene)
+        return cls(scene, config, statistics=metadata, **kwargs)
+
+    def _normalizers(self, statistics: _Statistics | None) -> tuple[Normalizer, Normalizer]:
+        dim, norm = self.scene.dim, self.config.normalization
+        if norm.source == "running":
+            return RunningNormalizer(dim, norm.min_std), RunningNormalizer(dim, norm.min_std)
+        missing = [
+            name
+            for name in ("vel_mean", "vel_std", "acc_mean", "acc_std")
+            if getattr(statistics, name, None) is None
+        ]
+        if missing:
+            raise ValueError(
+                "normalization.source = 'metadata' needs the dataset's statistics; missing "
+                + ", ".join(missing)
+            )
+        assert statistics is not None
+        noise = self.config.noise.std
+        # The network predicts acceleration - gravity, so that is what gets normalised.
+        acc_mean = torch.as_tensor(statistics.acc_mean, dtype=torch.float64) - self.gravity
+        return (
+            FixedNormalizer(
+                statistics.vel_mean, statistics.vel_std, noise_std=noise, min_std=norm.min_std
+            ),
+            FixedNormalizer(acc_mean, statistics.acc_std, noise_std=noise, min_std=norm.min_std),
+        )
+
+    def _context_normalizer(self, statistics: _Statistics | None) -> Normalizer:
+        norm, size = self.config.normalization, self.scene.context_size
+        if norm.source == "running":
+            return RunningNormalizer(size, norm.min_std)
+        mean = getattr(statistics, "context_mean", None)
+        std = getattr(statistics, "context_std", None)
+        if mean is None or std is None or len(mean) != size:
+            raise ValueError(
+                f"normalization.source = 'metadata' needs context_mean / context_std of length "
+                f"{size} for the scene's context"
+            )
+        return FixedNormalizer(mean, std, min_std=norm.min_std)
+
+    # ------------------------------------------------------------------ particles and geometry
+
+    def kinematic_mask(self, particle_type: Tensor) -> Tensor:
+        """(N,) bool: particles of a kinematic type (no noise, no loss, ground truth in rollout)."""
+        return torch.isin(particle_type.to(torch.int64), self.kinematic_type_ids)
+
+    def _type_index(self, particle_type: Tensor) -> Tensor:
+        ids, particle_type = self.particle_type_ids, particle_type.to(torch.int64)
+        index = torch.searchsorted(ids, particle_type).clamp(max=ids.shape[0] - 1)
+        known = ids.index_select(0, index) == particle_type
+        if not bool(known.all()):
+            unknown = sorted(set(particle_type[~known].tolist()))
+            raise ValueError(
+                f"particle types {unknown} are not in the scene's types {ids.tolist()}"
+            )
+        return index
+
+    def _box(self, dtype: torch.dtype) -> Tensor:
+        return (self.bounds[:, 1] - self.bounds[:, 0]).to(dtype)
+
+    def _periodic(self, device: torch.device) -> Tensor:
+        return torch.tensor(self.scene.periodic, device=device)
+
+    def displacement(self, a: Tensor, b: Tensor) -> Tensor:
+        """a - b, the minimum image on periodic axes (a particle crossing the box is not fast)."""
+        d = a - b
+        if not any(self.scene.periodic):
+            return d
+        box = self._box(d.dtype)
+        return torch.where(self._periodic(d.device), d - box * torch.round(d / box), d)
+
+    def wrap(self, x: Tensor) -> Tensor:
+        """Positions folded back into the box on periodic axes."""
+        if not any(self.scene.periodic):
+            return x
+        lo, box = self.bounds[:, 0].to(x.dtype), self._box(x.dtype)
+        return torch.where(self._periodic(x.device), lo + torch.remainder(x - lo, box), x)
+
+    def velocity_sequence(self, position_sequence: Tensor) -> Tensor:
+        """(N, C, D) finite differences of (N, C + 1, D) positions, per frame."""
+        return self.displacement(position_sequence[:, 1:], position_sequence[:, :-1])
+
+    def graph(
+        self, most_recent_position: Tensor, n_node: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Radius graph of the most recent positions (Rust core): senders, receivers (E,) and
+        the displacements x[senders] - x[receivers] (E, D), minimum image on periodic axes."""
+        x = most_recent_position.detach()
+        periodic = any(self.scene.periodic)
+        kwargs: dict[str, Any] = dict(n_node=n_node, self_edges=self.config.model.self_edges)
+        if periodic:
+            lo = self.bounds[:, 0].to(x.dtype)
+            kwargs.update(box=self._box(torch.float64).tolist(), periodic=list(self.scene.periodic))
+            edges, shifts = ops.radius_graph(
+                x - lo, self.scene.radius, return_shifts=True, **kwargs
+            )
+        else:
+            edges = ops.radius_graph(x, self.scene.radius, **kwargs)
+        senders, receivers = edges[0], edges[1]
+        relative = x.index_select(0, senders) - x.index_select(0, receivers)
+        if periodic:
+            relative = relative + shifts.to(x.dtype) * self._box(x.dtype)
+        return senders, receivers, relative
+
+    # ------------------------------------------------------------------ preprocess
+
+    def features(
+        self,
+        position_sequence: Tensor,
+        particle_type: Tensor,
+        n_node: Tensor | None = None,
+        context: Tensor | None = None,
+        material_property: Tensor | None = None,
+    ) -> dict[str, Tensor | None]:
+        """The model's inputs: node_features, edge_features, senders, receivers,
+        global_features (None unless the model has a global latent and the scene a context)."""
+        n, steps, dim = position_sequence.shape
+        c = self.config.model.velocity_history
+        if steps != c + 1 or dim != self.scene.dim:
+            raise ValueError(
+                f"position_sequence must be (N, {c + 1}, {self.scene.dim}) for C = {c}, got "
+                f"{tuple(position_sequence.shape)}"
+            )
+        if particle_type.shape != (n,):
+            raise ValueError(f"particle_type must be ({n},), got {tuple(particle_type.shape)}")
+        dtype, device = position_sequence.dtype, position_sequence.device
+        most_recent = position_sequence[:, -1]
+        n_graphs = 1 if n_node is None else int(n_node.shape[0])
+
+        velocities = self.velocity_normalizer.normalize(self.velocity_sequence(position_sequence))
+        nodes = [velocities.reshape(n, c * dim)]
+        if self.scene.wall_axes:
+            walls = ops.wall_features(
+                most_recent.detach(), self.bounds, self.scene.radius, clip=self.scene.wall_clip
+            )
+            columns = [*self.scene.wall_axes, *(dim + a for a in self.scene.wall_axes)]
+            nodes.append(walls[:, columns].to(dtype))
+        if self.obstacles:
+            distances = ops.obstacle_features(
+                most_recent.detach(), self.obstacles, self.scene.radius
+            )
+            nodes.append(distances.to(dtype))
+
+        global_features = None
+        if self.context_normalizer is not None:
+            if context is None:
+                raise ValueError(f"this scene has a context of width {self.scene.context_size}")
+            context = _as_rows(context, n_graphs, self.scene.context_size, "context")
+            context = context.to(device, dtype)
+            context = self.context_normalizer.normalize(context)
+            if self.config.model.global_latent:
+                global_features = context
+            else:  # appended to every node of its graph
+                nodes.append(self._per_node(context, n_node, n))
+        if self.scene.material_property_size:
+            if material_property is None:
+                raise ValueError("this scene has a material property; pass material_property")
+            size = self.scene.material_property_size
+            material = _as_rows(material_property, n, size, "material_property")
+            material = material.to(device, dtype)
+            nodes.append(material)
+        index = self._type_index(particle_type)
+        if self.particle_type_embedding is not None:
+            nodes.append(self.particle_type_embedding(index).to(dtype))
+
+        senders, receivers, relative = self.graph(most_recent, n_node)
+        relative = relative / self.scene.radius
+        distance = torch.linalg.vector_norm(relative, dim=-1, keepdim=True)
+        return {
+            "node_features": torch.cat(nodes, dim=-1),
+            "edge_features": torch.cat([relative, distance], dim=-1),
+            "senders": senders,
+            "receivers": receivers,
+            "global_features": global_features,
+        }
+
+    @staticmethod
+    def _per_node(per_graph: Tensor, n_node: Tensor | None, n: int) -> Tensor:
+        if n_node is None:
+            return per_graph.expand(n, -1)
+        repeats = n_node.to(per_graph.device)
+        return torch.repeat_interleave(per_graph, repeats, dim=0, output_size=n)
+
+    # ------------------------------------------------------------------ model
+
+    def forward(
+        self,
+        position_sequence: Tensor,
+        particle_type: Tensor,
+        n_node: Tensor | None = None,
+        context: Tensor | None = None,
+        material_property: Tensor | None = None,
+    ) -> Tensor:
+        """The predicted normalised acceleration (N, D)."""
+        f = self.features(position_sequence, particle_type, n_node, context, material_property)
+        return self.model(
+            f["node_features"],
+            f["edge_features"],
+            f["senders"],
+            f["receivers"],
+            f["global_features"],
+            n_node,
+        )
+
+    def predict_positions(
+        self,
+        position_sequence: Tensor,
+        particle_type: Tensor,
+        n_node: Tensor | None = None,
+        context: Tensor | None = None,
+        material_property: Tensor | None = None,
+    ) -> Tensor:
+        """The next positions (N, D), at least float32."""
+        normalized = self(position_sequence, particle_type, n_node, context, material_property)
+        return self.decoder_postprocess(normalized, position_sequence)
+
+    # ------------------------------------------------------------------ postprocess and inverse
+
+    @staticmethod
+    def _euler_dtype(x: Tensor) -> torch.dtype:
+        # Never integrate below float32 (e.g. a bfloat16 network output under autocast).
+        return torch.promote_types(x.dtype, torch.float32)
+
+    def decoder_postprocess(
+        self, normalized_acceleration: Tensor, position_sequence: Tensor
+    ) -> Tensor:
+        """Semi-implicit Euler with dt = 1: v' = v + a, x' = x + v' (A). Returns x' (N, D)."""
+        dtype = self._euler_dtype(position_sequence)
+        positions = position_sequence.to(dtype)
+        acceleration = self.acceleration_normalizer.inverse(normalized_acceleration.to(dtype))
+        acceleration = acceleration + self.gravity.to(dtype)
+        most_recent_velocity = self.displacement(positions[:, -1], positions[:, -2])
+        new_velocity = most_recent_velocity + acceleration
+        return self.wrap(positions[:, -1] + new_velocity)
+
+    def acceleration(self, next_position: Tensor, position_sequence: Tensor) -> Tensor:
+        """The acceleration (minus gravity, when added) that takes the sequence to
+        next_position: the raw, un-normalised inverse of the Euler update."""
+        dtype = self._euler_dtype(position_sequence)
+        positions = position_sequence.to(dtype)
+        next_velocity = self.displacement(next_position.to(dtype), positions[:, -1])
+        most_recent_velocity = self.displacement(positions[:, -1], positions[:, -2])
+        return next_velocity - most_recent_velocity - self.gravity.to(dtype)
+
+    def target_normalized_acceleration(
+        self,
+        next_position: Tensor,
+        noisy_position_sequence: Tensor,
+        position_sequence_noise: Tensor | None = None,
+    ) -> Tensor:
+        """The inverse of decoder_postprocess: the normalised acceleration that takes
+        noisy_position_sequence to next_position.
+
+        With position_sequence_noise (N, C + 1, D) the target is corrected for the input noise
+        (B.3): the fraction `noise.correct_position_fraction` of the noise in the most recent
+        position is removed in the prediction, the rest kept, so at 0 (the default) the
+        predicted next velocity is the ground-truth next velocity.
+        """
+        if position_sequence_noise is not None:
+            keep = 1.0 - self.config.noise.correct_position_fraction
+            next_position = next_position + keep * position_sequence_noise[:, -1]
+        acceleration = self.acceleration(next_position, noisy_position_sequence)
+        return self.acceleration_normalizer.normalize(acceleration)
+
+    # ------------------------------------------------------------------ training helpers
+
+    def sample_noise(
+        self,
+        position_sequence: Tensor,
+        particle_type: Tensor,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
+        """Position noise (N, C + 1, D) of the configured type; zero on kinematic particles."""
+        return sample_noise(
+            self.config.noise,
+            position_sequence,
+            kinematic=self.kinematic_mask(particle_type),
+            generator=generator,
+        )
+
+    def update_statistics(
+        self,
+        noisy_position_sequence: Tensor,
+        acceleration: Tensor,
+        particle_type: Tensor,
+        n_node: Tensor | None = None,
+        context: Tensor | None = None,
+    ) -> None:
+        """Add a batch to the running statistics (no-op for metadata statistics): velocities of
+        the noisy inputs and target accelerations of non-kinematic particles, and the context."""
+        free = ~self.kinematic_mask(particle_type)
+        velocities = self.velocity_sequence(noisy_position_sequence)
+        steps = velocities.shape[1]
+        self.velocity_normalizer.update(velocities, free[:, None].expand(-1, steps))
+        self.acceleration_normalizer.update(acceleration, free)
+        if self.context_normalizer is not None and context is not None:
+            n_graphs = 1 if n_node is None else int(n_node.shape[0])
+            rows = _as_rows(context, n_graphs, self.scene.context_size, "context")
+            self.context_normalizer.update(rows)
+
+    def predict_accelerations(
+        self,
+        next_position: Tensor,
+        position_sequence: Tensor,
+        position_sequence_noise: Tensor,
+        particle_type: Tensor,
+        n_node: Tensor | None = None,
+        context: Tensor | None = None,
+        material_property: Tensor | None = None,
+        *,
+        update_statistics: bool | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """One training example: (predicted, target) normalised accelerations (N, D).
+
+        position_sequence is the clean input (N, C + 1, D); the model sees it plus
+        position_sequence_noise. update_statistics (default: in training mode) first adds this
+        batch, after noise, to the running statistics (B.2), so the very first batch is already
+        normalised by its own statistics.
+        """
+        noisy = position_sequence + position_sequence_noise
+        keep = 1.0 - self.config.noise.correct_position_fraction
+        # As target_normalized_acceleration, with the raw acceleration kept for the statistics.
+        acceleration = self.acceleration(
+            next_position + keep * position_sequence_noise[:, -1], noisy
+        )
+        if self.training if update_statistics is None else update_statistics:
+            self.update_statistics(noisy, acceleration, particle_type, n_node, context)
+        target = self.acceleration_normalizer.normalize(acceleration)
+        predicted = self(noisy, particle_type, n_node, context, material_property)
+        return predicted, target
