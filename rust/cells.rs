@@ -2,12 +2,15 @@
 //! from the graph's actual bounding box, with positions copied in cell order (structure of
 //! arrays) so that each query scans a few contiguous runs instead of 9 or 27 scattered cells.
 
-use crate::graph::{accept_at, Ctx, Found, Prepared};
+use crate::graph::{accept_at, Ctx, Found, Prepared, SharedMut};
+use rayon::prelude::*;
 
 /// The grid declines (and the caller uses the k-d tree) when it would need more cells than
 /// this many per particle: an outlier far away must not allocate billions of empty cells.
 const MAX_CELLS_PER_PARTICLE: usize = 4;
 const MIN_CELL_BUDGET: usize = 4096;
+/// From this many particles the counting sort runs on every thread.
+const PARALLEL_SORT_FROM: usize = 32_768;
 
 pub(crate) struct Grid<const D: usize> {
     len: usize,
@@ -24,7 +27,8 @@ pub(crate) struct Grid<const D: usize> {
     order: Vec<u32>,
     /// Coordinates in sorted order, axis-major: sorted[d * len + p].
     sorted: Vec<f64>,
-    /// Scratch for the counting sort.
+    /// Scratch for the counting sort: cell id by input order, and per-part cursors.
+    cell_in: Vec<u32>,
     cursor: Vec<u32>,
 }
 
@@ -40,6 +44,7 @@ impl<const D: usize> Default for Grid<D> {
             cell_of: Vec::new(),
             order: Vec::new(),
             sorted: Vec::new(),
+            cell_in: Vec::new(),
             cursor: Vec::new(),
         }
     }
@@ -150,48 +155,87 @@ impl<const D: usize> Grid<D> {
         }
         let n_cells = cells as usize;
 
-        // Counting sort by cell: stable, so each cell lists its particles by index.
+        // Counting sort by cell, stable: each cell lists its particles by index. A large input
+        // is cut, in index order, into one part per thread with a histogram each, so that the
+        // sort runs on every thread and still places each particle where the serial sort would.
+        let parts = if len >= PARALLEL_SORT_FROM {
+            rayon::current_num_threads().max(1)
+        } else {
+            1
+        };
+        let chunk = len.div_ceil(parts).max(1);
+        let parts = len.div_ceil(chunk).max(1);
+        let (n, lo, inv) = (self.n, self.lo, self.inv_cell);
+        let cell_id = |x: &[f64]| cell_id::<D>(&n, &lo, &inv, x);
+        self.cell_in.clear();
+        self.cell_in.resize(len, 0);
+        self.cursor.clear();
+        self.cursor.resize(parts * n_cells, 0);
+        let histogram = |((ids, xs), hist): ((&mut [u32], &[f64]), &mut [u32])| {
+            for (id, x) in ids.iter_mut().zip(xs.chunks_exact(D)) {
+                let c = cell_id(x);
+                *id = c as u32;
+                hist[c] += 1;
+            }
+        };
+        if parts == 1 {
+            histogram(((&mut self.cell_in[..], coords), &mut self.cursor[..]));
+        } else {
+            self.cell_in
+                .par_chunks_mut(chunk)
+                .zip(coords.par_chunks(chunk * D))
+                .zip(self.cursor.par_chunks_mut(n_cells))
+                .for_each(histogram);
+        }
+        // Histograms to cursors: cell by cell, part by part.
         self.cell_start.clear();
         self.cell_start.resize(n_cells + 1, 0);
-        self.cell_of.clear();
-        self.cell_of.reserve(len);
-        for x in coords.chunks_exact(D) {
-            let c = self.cell_id(x);
-            self.cell_of.push(c as u32);
-            self.cell_start[c + 1] += 1;
-        }
+        let mut acc = 0u32;
         for c in 0..n_cells {
-            self.cell_start[c + 1] += self.cell_start[c];
+            self.cell_start[c] = acc;
+            for t in 0..parts {
+                let h = self.cursor[t * n_cells + c];
+                self.cursor[t * n_cells + c] = acc;
+                acc += h;
+            }
         }
-        self.cursor.clear();
-        self.cursor.extend_from_slice(&self.cell_start[..n_cells]);
+        self.cell_start[n_cells] = acc;
         self.order.clear();
         self.order.resize(len, 0);
         self.sorted.clear();
         self.sorted.resize(D * len, 0.0);
-        let mut cell_sorted = vec![0u32; len];
-        for (k, x) in coords.chunks_exact(D).enumerate() {
-            let c = self.cell_of[k] as usize;
-            let p = self.cursor[c] as usize;
-            self.cursor[c] += 1;
-            self.order[p] = (start + k) as u32;
-            cell_sorted[p] = c as u32;
-            for d in 0..D {
-                self.sorted[d * len + p] = x[d];
+        self.cell_of.clear();
+        self.cell_of.resize(len, 0);
+        let (order, sorted, cell_of) = (
+            SharedMut(self.order.as_mut_ptr()),
+            SharedMut(self.sorted.as_mut_ptr()),
+            SharedMut(self.cell_of.as_mut_ptr()),
+        );
+        let scatter = |(t, (ids, cursor)): (usize, (&[u32], &mut [u32]))| {
+            for (k, &c) in ids.iter().enumerate() {
+                let k = t * chunk + k;
+                let p = cursor[c as usize] as usize;
+                cursor[c as usize] += 1;
+                // SAFETY: the cursors of all parts cover disjoint positions, each written once.
+                unsafe {
+                    *order.ptr().add(p) = (start + k) as u32;
+                    *cell_of.ptr().add(p) = c;
+                    for d in 0..D {
+                        *sorted.ptr().add(d * len + p) = coords[k * D + d];
+                    }
+                }
             }
+        };
+        if parts == 1 {
+            scatter((0, (&self.cell_in[..], &mut self.cursor[..])));
+        } else {
+            self.cell_in
+                .par_chunks(chunk)
+                .zip(self.cursor.par_chunks_mut(n_cells))
+                .enumerate()
+                .for_each(scatter);
         }
-        self.cell_of = cell_sorted;
         true
-    }
-
-    #[inline]
-    fn cell_id(&self, x: &[f64]) -> usize {
-        let mut id = 0usize;
-        for d in 0..D {
-            let c = (((x[d] - self.lo[d]) * self.inv_cell[d]) as usize).min(self.n[d] - 1);
-            id = id * self.n[d] + c;
-        }
-        id
     }
 
     /// The contiguous runs of sorted positions (a, b) that can hold neighbours of the
@@ -367,6 +411,17 @@ fn collect_block<const D: usize>(
     }
     let _ = avx2;
     collect_run::<D>(coords, ids, w, 0, w, q, r2, out)
+}
+
+/// Row-major cell id (last axis fastest) of the point x.
+#[inline]
+fn cell_id<const D: usize>(n: &[usize; D], lo: &[f64; D], inv_cell: &[f64; D], x: &[f64]) -> usize {
+    let mut id = 0usize;
+    for d in 0..D {
+        let c = (((x[d] - lo[d]) * inv_cell[d]) as usize).min(n[d] - 1);
+        id = id * n[d] + c;
+    }
+    id
 }
 
 fn n_is_huge(n: usize) -> bool {

@@ -460,14 +460,14 @@ fn brute_collect(ctx: &Ctx, start: usize, end: usize, i: usize, found: &mut Foun
 
 /// A raw pointer that several threads write through, each to rows no other thread touches.
 #[derive(Clone, Copy)]
-struct SharedMut<T>(*mut T);
+pub(crate) struct SharedMut<T>(pub(crate) *mut T);
 unsafe impl<T> Send for SharedMut<T> {}
 unsafe impl<T> Sync for SharedMut<T> {}
 
 impl<T> SharedMut<T> {
     /// A method, not a field access, so closures capture the Sync wrapper, not the pointer.
     #[inline(always)]
-    fn ptr(self) -> *mut T {
+    pub(crate) fn ptr(self) -> *mut T {
         self.0
     }
 }
@@ -1082,6 +1082,33 @@ mod tests {
         let e = radius_graph(&dense, 2, None, &GraphOptions::new(0.02), false).unwrap();
         assert!(as_pairs(&e).windows(2).all(|w| w[0] < w[1]));
         assert!(e.senders.len() > 3000 * 100);
+    }
+
+    #[test]
+    fn large_inputs_sort_in_parallel_and_agree_with_the_tree_and_one_thread() {
+        // Above PARALLEL_SORT_FROM the counting sort is split per thread; the result must not
+        // depend on the thread count, and must match the independent k-d tree.
+        for dim in [2, 3] {
+            let mut pts = random_points(50_000, dim, 21, 1.0);
+            pts.extend(random_points(20_000, dim, 22, 0.3)); // denser region: uneven parts
+            let opts = GraphOptions::new(if dim == 2 { 0.01 } else { 0.03 });
+            let one = Searcher::new(Some(1))
+                .unwrap()
+                .search(&pts, dim, None, &opts, false)
+                .unwrap();
+            let three = Searcher::new(Some(3))
+                .unwrap()
+                .search(&pts, dim, None, &opts, false)
+                .unwrap();
+            let tree = GraphOptions {
+                method: Method::KdTree,
+                ..opts.clone()
+            };
+            let by_tree = radius_graph(&pts, dim, None, &tree, false).unwrap();
+            assert_eq!(one, three);
+            assert_eq!(one, by_tree);
+            assert!(one.senders.len() > 70_000 * 5);
+        }
     }
 
     #[test]
