@@ -11,13 +11,7 @@ from torch import nn
 TINY = dict(latent_size=16, mlp_hidden_size=16, message_passing_steps=2)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models run fastest on one thread, and intra-op threads spin badly on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def random_graph(n=30, e=120, seed=0, node_size=7, edge_size=3):

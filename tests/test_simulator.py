@@ -20,13 +20,7 @@ BOX = ((0.1, 0.9), (0.1, 0.9))
 EPS32 = float(np.finfo(np.float32).eps)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models run fastest on one thread, and intra-op threads spin badly on a busy machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def config(**model):
