@@ -4,6 +4,7 @@
     [noise]          input noise (sections B.3 and C.2)
     [normalization]  running statistics (B.2) or the dataset's metadata.json
     [scene]          how a dataset's facts become the model's inputs (walls, context, ...)
+    [train]          optimiser, learning-rate schedule, batches, validation and checkpoints
 
 `from_dict` builds any of these dataclasses (or `Scene`) from a plain dict, checking every value's
 type and rejecting keys it does not know with a ValueError that names the key, so a typo in a
@@ -13,6 +14,7 @@ config file fails loudly instead of silently training the default model.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import sys
@@ -33,6 +35,7 @@ __all__ = [
     "NoiseConfig",
     "NormalizationConfig",
     "SceneConfig",
+    "TrainConfig",
     "NOISE_TYPES",
     "from_dict",
     "load_config",
@@ -167,11 +170,80 @@ class SceneConfig:
 
 
 @dataclass(frozen=True)
+class TrainConfig:
+    """Training (section B.4 of the paper for the optimiser and schedule).
+
+    steps: gradient steps in all (the paper trains for up to 20M).
+    learning_rate, learning_rate_final, learning_rate_decay_steps: Adam with
+        lr(j) = final + (start - final) * 0.1 ** (j / decay_steps).
+    batch_size: windows (graphs) per batch, the paper's 2. batch_particles: also cap a batch at
+        this many particles (0: no particle budget), so large scenes do not exhaust memory.
+    trajectories_in_memory: how many trajectories are loaded and shuffled together; each epoch
+        visits trajectories in a fresh random order, this many at a time.
+    log_every: steps between loss lines in the logs. validate_every: steps between validations
+        (0: never) on the valid split: one-step MSE over validation_windows fixed windows and
+        rollouts of validation_rollout_steps steps on validation_rollouts trajectories.
+    checkpoint_every: steps between checkpoints (one is always written at the end);
+        keep_checkpoints: how many of the newest to keep.
+    seed: data order, noise and initial weights.
+    """
+
+    steps: int = 20_000_000
+    learning_rate: float = 1e-4
+    learning_rate_final: float = 1e-6
+    learning_rate_decay_steps: float = 5e6
+    batch_size: int = 2
+    batch_particles: int = 0
+    trajectories_in_memory: int = 64
+    log_every: int = 100
+    validate_every: int = 10_000
+    validation_windows: int = 256
+    validation_rollouts: int = 2
+    validation_rollout_steps: int = 50
+    checkpoint_every: int = 10_000
+    keep_checkpoints: int = 3
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _positive(
+            self,
+            "steps",
+            "learning_rate",
+            "learning_rate_decay_steps",
+            "batch_size",
+            "trajectories_in_memory",
+            "log_every",
+            "checkpoint_every",
+            "keep_checkpoints",
+        )
+        if not 0 <= self.learning_rate_final <= self.learning_rate:
+            raise ValueError(
+                "TrainConfig.learning_rate_final must be in [0, learning_rate], got "
+                f"{self.learning_rate_final}"
+            )
+        for name in (
+            "batch_particles",
+            "validate_every",
+            "validation_windows",
+            "validation_rollouts",
+            "validation_rollout_steps",
+        ):
+            if getattr(self, name) < 0:
+                raise ValueError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
+
+    def learning_rate_at(self, step: int) -> float:
+        """The learning rate of gradient step `step` (0-based)."""
+        decay = 0.1 ** (step / self.learning_rate_decay_steps)
+        return self.learning_rate_final + (self.learning_rate - self.learning_rate_final) * decay
+
+
+@dataclass(frozen=True)
 class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     normalization: NormalizationConfig = field(default_factory=NormalizationConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
 
 
 T = TypeVar("T")
@@ -264,12 +336,16 @@ def to_dict(obj: Any) -> dict[str, Any]:
 
 
 def load_config(path: str | os.PathLike[str]) -> Config:
-    """Read a TOML file into a Config; missing settings keep the paper's defaults."""
+    """Read a TOML file (or a run's config.json) into a Config; missing settings keep the
+    paper's defaults."""
     with open(path, "rb") as f:
         try:
-            data = tomllib.load(f)
-        except tomllib.TOMLDecodeError as err:
-            raise ValueError(f"{os.fspath(path)}: not valid TOML: {err}") from err
+            if os.fspath(path).endswith(".json"):
+                data = json.load(f)
+            else:
+                data = tomllib.load(f)
+        except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+            raise ValueError(f"{os.fspath(path)}: not valid TOML/JSON: {err}") from err
     try:
         return from_dict(Config, data)
     except ValueError as err:

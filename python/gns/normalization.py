@@ -15,7 +15,7 @@ by a tiny number.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
@@ -76,6 +76,9 @@ class RunningNormalizer(Normalizer):
 
     def __init__(self, size: int, min_std: float = 1e-7) -> None:
         super().__init__(size, min_std)
+        # In distributed training, an in-place sum over ranks (e.g. dist.all_reduce) so every
+        # rank holds the statistics of all ranks' data; every rank must then call update.
+        self.all_reduce: Callable[[Tensor], None] | None = None
         f64 = torch.float64
         self.register_buffer("count", torch.zeros((), dtype=f64))
         self.register_buffer("shift", torch.zeros(size, dtype=f64))
@@ -88,15 +91,29 @@ class RunningNormalizer(Normalizer):
         rows = values.detach().reshape(-1, self.size).to(torch.float64)
         if mask is not None:
             rows = rows[mask.reshape(-1).to(torch.bool)]
-        if rows.shape[0] == 0:
+        reduce = self.all_reduce
+        if reduce is None and rows.shape[0] == 0:
             return
         # No .item(): keeps the update free of host-device synchronisation.
         first = self.count == 0
-        self.shift.copy_(torch.where(first, rows.mean(dim=0), self.shift))
+        if reduce is None:
+            batch_mean = rows.mean(dim=0)
+        else:
+            # Distributed training: the shift is the mean of the whole first global batch.
+            totals = torch.cat([rows.new_tensor([rows.shape[0]]), rows.sum(dim=0)])
+            reduce(totals)
+            batch_mean = totals[1:] / totals[0].clamp(min=1.0)
+            first = first & (totals[0] > 0)
+        self.shift.copy_(torch.where(first, batch_mean, self.shift))
         centred = rows - self.shift
-        self.count += rows.shape[0]
-        self.sum += centred.sum(dim=0)
-        self.sum_squares += (centred * centred).sum(dim=0)
+        sums = torch.cat(
+            [rows.new_tensor([rows.shape[0]]), centred.sum(dim=0), (centred * centred).sum(dim=0)]
+        )
+        if reduce is not None:
+            reduce(sums)
+        self.count += sums[0]
+        self.sum += sums[1 : 1 + self.size]
+        self.sum_squares += sums[1 + self.size :]
 
     @property
     def mean(self) -> Tensor:

@@ -104,13 +104,20 @@ class Scene:
 
     @classmethod
     def from_metadata(
-        cls, metadata: Any, particle_types: Iterable[int], config: SceneConfig | None = None
+        cls,
+        metadata: Any,
+        particle_types: Iterable[int],
+        config: SceneConfig | None = None,
+        context_size: int | None = None,
     ) -> Scene:
-        """A scene from a gns.data.Metadata and the particle types that occur in the data."""
+        """A scene from a gns.data.Metadata and the particle types that occur in the data.
+
+        context_size: the width of the data's step_context (None: metadata's context_mean)."""
         config = config or SceneConfig()
-        context_size = 0
-        if config.context and metadata.context_mean is not None:
-            context_size = len(metadata.context_mean)
+        if context_size is None:
+            context_size = 0 if metadata.context_mean is None else len(metadata.context_mean)
+        if not config.context:
+            context_size = 0
         use_material = config.material_property
         if use_material is None:
             use_material = context_size == 0
@@ -141,11 +148,17 @@ class Scene:
 
     @classmethod
     def from_dataset(cls, dataset: Any, config: SceneConfig | None = None) -> Scene:
-        """A scene from a gns.data.Dataset (reads every trajectory once for its types)."""
+        """A scene from a gns.data.Dataset (reads every trajectory once for its particle types
+        and context width)."""
         types: set[int] = set()
+        widths: set[int] = set()
         for trajectory in dataset:
             types.update(int(t) for t in np.unique(trajectory.particle_type))
-        return cls.from_metadata(dataset.metadata, sorted(types), config)
+            context = trajectory.step_context
+            widths.add(0 if context is None else int(context.shape[1]))
+        if len(widths) > 1:
+            raise ValueError(f"trajectories disagree on the step_context width: {sorted(widths)}")
+        return cls.from_metadata(dataset.metadata, sorted(types), config, widths.pop())
 
 
 def _as_rows(x: Tensor | np.ndarray | float, rows: int, width: int, name: str) -> Tensor:
@@ -371,9 +384,15 @@ class LearnedSimulator(nn.Module):
         n_node: Tensor | None = None,
         context: Tensor | None = None,
         material_property: Tensor | None = None,
+        *,
+        graph: tuple[Tensor, Tensor, Tensor] | None = None,
     ) -> dict[str, Tensor | None]:
         """The model's inputs: node_features, edge_features, senders, receivers,
-        global_features (None unless the model has a global latent and the scene a context)."""
+        global_features (None unless the model has a global latent and the scene a context).
+
+        graph: `self.graph(position_sequence[:, -1], n_node)` computed by the caller, so that
+        the radius search can be timed on its own (gns.rollout); default: computed here.
+        """
         n, steps, dim = position_sequence.shape
         c = self.config.model.velocity_history
         if steps != c + 1 or dim != self.scene.dim:
@@ -423,7 +442,9 @@ class LearnedSimulator(nn.Module):
         if self.particle_type_embedding is not None:
             nodes.append(self.particle_type_embedding(index).to(dtype))
 
-        senders, receivers, relative = self.graph(most_recent, n_node)
+        if graph is None:
+            graph = self.graph(most_recent, n_node)
+        senders, receivers, relative = graph
         relative = relative / self.scene.radius
         distance = torch.linalg.vector_norm(relative, dim=-1, keepdim=True)
         return {

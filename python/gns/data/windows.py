@@ -222,3 +222,117 @@ def pack_batches(
         total += window.n_node
     if pending:
         yield collate(pending)
+
+
+class WindowSampler:
+    """The training order of windows: deterministic in the seed and resumable at any batch.
+
+    Each epoch visits the trajectories in a fresh random order, `trajectories_in_memory` at a
+    time (a chunk); the windows of a chunk are shuffled together and dealt out. The whole state
+    is (epoch, chunk, position), so a checkpoint can restart the exact same sequence of batches
+    without replaying the data (a streaming shuffle buffer could not be restored).
+
+    With world_size > 1 (distributed training) every rank computes the same order and rank r
+    takes the windows at positions r, r + world_size, ...: ranks see disjoint data. A chunk's
+    order is cut to a multiple of world_size (at most world_size - 1 windows of each chunk go
+    unused in that epoch) so the ranks move to the next chunk together.
+    """
+
+    def __init__(
+        self,
+        trajectories: Sequence[Trajectory],
+        input_sequence_length: int = INPUT_SEQUENCE_LENGTH,
+        *,
+        seed: int = 0,
+        trajectories_in_memory: int = 64,
+        rank: int = 0,
+        world_size: int = 1,
+    ) -> None:
+        if len(trajectories) == 0:
+            raise ValueError("WindowSampler needs at least one trajectory")
+        if trajectories_in_memory < 1:
+            raise ValueError(
+                f"trajectories_in_memory must be at least 1, got {trajectories_in_memory}"
+            )
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} is not in [0, world_size={world_size})")
+        self.trajectories = trajectories
+        self.input_sequence_length = input_sequence_length
+        self.seed = seed
+        self.trajectories_in_memory = trajectories_in_memory
+        self.rank, self.world_size = rank, world_size
+        self.epoch = self.chunk = self.position = 0
+        self._loaded: tuple[int, int] | None = None
+        self._chunk: list[Trajectory] = []
+        self._order: np.ndarray = np.empty((0, 2), dtype=np.int64)
+
+    def state_dict(self) -> dict[str, int]:
+        return {"epoch": self.epoch, "chunk": self.chunk, "position": self.position}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.epoch, self.chunk = int(state["epoch"]), int(state["chunk"])
+        self.position = int(state["position"])
+
+    def _load(self) -> None:
+        """Make the chunk (epoch, chunk) current, moving to the next epoch past the last one."""
+        per_chunk = self.trajectories_in_memory
+        num_chunks = -(-len(self.trajectories) // per_chunk)
+        if self.chunk >= num_chunks:
+            self.epoch, self.chunk, self.position = self.epoch + 1, 0, 0
+        if self._loaded == (self.epoch, self.chunk):
+            return
+        # A generator per (seed, epoch, chunk): any chunk can be rebuilt on its own.
+        visit = np.random.default_rng([self.seed, self.epoch]).permutation(len(self.trajectories))
+        members = visit[self.chunk * per_chunk : (self.chunk + 1) * per_chunk]
+        self._chunk = [self.trajectories[int(i)] for i in members]
+        pairs = [
+            (k, start)
+            for k, trajectory in enumerate(self._chunk)
+            for start in range(num_windows(trajectory.num_frames, self.input_sequence_length))
+        ]
+        order = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        rng = np.random.default_rng([self.seed, self.epoch, self.chunk])
+        order = order[rng.permutation(len(order))]
+        self._order = order[: len(order) - len(order) % self.world_size]
+        self._loaded = (self.epoch, self.chunk)
+
+    def _peek(self) -> tuple[Trajectory, int]:
+        """The next window of this rank as (trajectory, start), without taking it."""
+        for _ in range(2 * len(self.trajectories) + 2):
+            self._load()
+            index = self.position + self.rank
+            if index < len(self._order):
+                k, start = self._order[index]
+                return self._chunk[int(k)], int(start)
+            self.chunk, self.position = self.chunk + 1, 0
+        raise ValueError(
+            f"no trajectory is longer than input_sequence_length={self.input_sequence_length} "
+            "frames: there are no training windows"
+        )
+
+    def _take(self) -> Window:
+        trajectory, start = self._peek()
+        # Every rank steps over the whole group of world_size windows.
+        self.position += self.world_size
+        return next(trajectory_windows(trajectory, self.input_sequence_length, [start]))
+
+    def next_batch(self, batch_size: int, max_particles: int = 0) -> Batch:
+        """The next batch: up to batch_size windows and (if max_particles > 0) at most
+        max_particles particles. A window larger than the particle budget is an error."""
+        windows: list[Window] = []
+        total = 0
+        while len(windows) < batch_size:
+            trajectory, start = self._peek()
+            n = trajectory.n_particles
+            if max_particles and n > max_particles:
+                raise DatasetError(
+                    "<batching>",
+                    f"window (start {start}) has {n} particles, more than the particle budget "
+                    f"{max_particles}",
+                    trajectory.key,
+                )
+            if max_particles and windows and total + n > max_particles:
+                break
+            windows.append(self._take())
+            total += n
+        return collate(windows)

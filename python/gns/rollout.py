@@ -1,0 +1,512 @@
+"""Autoregressive rollouts of a LearnedSimulator, and the files they are saved in.
+
+    rollout(simulator, trajectory)  the first C + 1 ground-truth frames, then num_steps frames
+                                    each predicted from the C + 1 before it (section 3: the
+                                    model is applied to its own outputs); kinematic particles
+                                    are held to the ground truth at every step
+    save_rollout / load_rollout     our npz schema (formats.md "Rollout files"), no pickle
+    save_deepmind_pickle            DeepMind learning_to_simulate's rollout pickle layout
+
+Every step is timed in four parts: "graph" (the Rust radius graph), "features" (the rest of the
+preprocess), "model" (EncodeProcessDecode) and "integration" (decoder postprocess, i.e.
+de-normalisation and the Euler update, plus the kinematic override).
+
+A non-finite prediction stops the rollout with `RolloutDiverged`, which carries the finite part;
+NaN never travels on into later steps, metrics or files.
+"""
+
+from __future__ import annotations
+
+import json
+import operator
+import os
+import pickle
+import time
+import zipfile
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+import gns
+from gns.data.atomic import atomic_file
+from gns.data.trajectory import Trajectory
+from gns.simulator import LearnedSimulator
+
+__all__ = [
+    "SCHEMA",
+    "TIMING_PARTS",
+    "Rollout",
+    "RolloutDiverged",
+    "load_rollout",
+    "rollout",
+    "save_deepmind_pickle",
+    "save_rollout",
+]
+
+TIMING_PARTS = ("graph", "features", "model", "integration")
+SCHEMA = "gns.rollout/1"
+
+# npz keys of the schema; timings and array metrics get a prefix per entry.
+_REQUIRED = ("schema", "initial_positions", "predicted_rollout", "particle_types", "metadata")
+_OPTIONAL = ("ground_truth_rollout", "step_context", "metrics")
+_TIMING, _METRIC = "timing_", "metric_"
+
+
+@dataclass(eq=False)
+class Rollout:
+    """One rollout of S = num_steps predicted frames after C + 1 given ones.
+
+    initial_positions: (C + 1, N, D), the ground-truth history the rollout starts from.
+    predicted_rollout: (S, N, D), frames C + 1 ... C + S; kinematic particles are ground truth.
+    ground_truth_rollout: (S, N, D), the same frames of the trajectory, or None when the
+        rollout runs past the end of the trajectory.
+    particle_type: (N,) int64.
+    step_context: (C + S, K), the context of every frame that was an input (step t reads
+        frame C + t, the last input frame, as in training), or None.
+    metadata: plain JSON values (scene facts, trajectory, run info).
+    timings: TIMING_PARTS -> (S,) float64 seconds per step.
+    metrics: filled by the evaluation code; numbers, numpy arrays or plain JSON values.
+
+    Positions are float32 or float64 (the simulator's precision, never below float32).
+    `trajectory` properties give the whole (C + 1 + S, N, D) sequences.
+    """
+
+    initial_positions: np.ndarray
+    predicted_rollout: np.ndarray
+    ground_truth_rollout: np.ndarray | None
+    particle_type: np.ndarray
+    step_context: np.ndarray | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+    timings: dict[str, np.ndarray] = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        history, predicted = self.initial_positions, self.predicted_rollout
+        if history.ndim != 3 or history.shape[0] < 2:
+            raise ValueError(f"initial_positions must be (C + 1, N, D), got {history.shape}")
+        _, n, d = history.shape
+        if predicted.ndim != 3 or predicted.shape[1:] != (n, d):
+            raise ValueError(f"predicted_rollout must be (S, {n}, {d}), got {predicted.shape}")
+        steps = predicted.shape[0]
+        for name in ("initial_positions", "predicted_rollout", "ground_truth_rollout"):
+            value = getattr(self, name)
+            if value is not None and not np.issubdtype(value.dtype, np.floating):
+                raise ValueError(f"{name} must be floating point, got {value.dtype}")
+        truth = self.ground_truth_rollout
+        if truth is not None and truth.shape != predicted.shape:
+            raise ValueError(
+                f"ground_truth_rollout must be {predicted.shape} like predicted_rollout, "
+                f"got {truth.shape}"
+            )
+        if self.particle_type.shape != (n,) or not np.issubdtype(
+            self.particle_type.dtype, np.integer
+        ):
+            raise ValueError(
+                f"particle_type must be ({n},) integers, got {self.particle_type.shape} "
+                f"{self.particle_type.dtype}"
+            )
+        c = history.shape[0] - 1
+        context = self.step_context
+        if context is not None and (context.ndim != 2 or context.shape[0] != c + steps):
+            raise ValueError(f"step_context must be (C + S = {c + steps}, K), got {context.shape}")
+        for part, seconds in self.timings.items():
+            if seconds.shape != (steps,):
+                raise ValueError(f"timings[{part!r}] must be ({steps},), got {seconds.shape}")
+
+    @property
+    def num_steps(self) -> int:
+        """S, the number of predicted frames."""
+        return int(self.predicted_rollout.shape[0])
+
+    @property
+    def predicted_trajectory(self) -> np.ndarray:
+        """(C + 1 + S, N, D): the history followed by the prediction."""
+        return np.concatenate([self.initial_positions, self.predicted_rollout])
+
+    @property
+    def ground_truth_trajectory(self) -> np.ndarray | None:
+        """(C + 1 + S, N, D): the history followed by the ground truth, or None."""
+        if self.ground_truth_rollout is None:
+            return None
+        return np.concatenate([self.initial_positions, self.ground_truth_rollout])
+
+
+class RolloutDiverged(ValueError):
+    """A step predicted non-finite positions. `rollout` holds the steps before it (finite);
+    `step` is the 0-based step (it predicted frame C + 1 + step), `num_nonfinite` the number
+    of particles whose position is not finite."""
+
+    def __init__(self, message: str, rollout: Rollout, step: int, num_nonfinite: int) -> None:
+        super().__init__(message)
+        self.rollout, self.step, self.num_nonfinite = rollout, step, num_nonfinite
+
+
+# ---------------------------------------------------------------------------------- rollout
+
+
+def _clock(device: torch.device) -> Callable[[], float]:
+    """perf_counter that first waits for queued CUDA kernels, so each part is charged for the
+    work it launched rather than for whatever happened to finish before the clock was read."""
+    if device.type == "cuda":
+
+        def now() -> float:
+            torch.cuda.synchronize(device)
+            return time.perf_counter()
+
+        return now
+    return time.perf_counter
+
+
+def _check_num_steps(
+    num_steps: int | None, trajectory: Trajectory, history: int, num_kinematic: int
+) -> int:
+    frames = trajectory.num_frames
+    if frames < history:
+        raise ValueError(
+            f"a rollout needs the first C + 1 = {history} frames as history, but the trajectory "
+            f"has {frames} frames"
+        )
+    available = frames - history  # frames of ground truth after the history
+    if num_steps is None:
+        num_steps = available
+        if num_steps < 1:
+            raise ValueError(
+                f"the trajectory has only the {history} history frames; pass num_steps to "
+                "predict beyond them"
+            )
+    num_steps = operator.index(num_steps)
+    if num_steps < 1:
+        raise ValueError(f"num_steps must be at least 1, got {num_steps}")
+    if num_steps > available and num_kinematic:
+        raise ValueError(
+            f"num_steps = {num_steps} needs ground truth for the {num_kinematic} kinematic "
+            f"particles up to frame {history + num_steps - 1}, but the trajectory has {frames} "
+            f"frames (at most {available} steps)"
+        )
+    context = trajectory.step_context
+    if context is not None and history - 1 + num_steps > frames:
+        raise ValueError(
+            f"num_steps = {num_steps} reads the step context up to frame {history + num_steps - 2}"
+            f", but the trajectory has {frames} frames (at most {frames - history + 1} steps)"
+        )
+    return num_steps
+
+
+def _run_metadata(
+    simulator: LearnedSimulator,
+    trajectory: Trajectory,
+    num_steps: int,
+    num_kinematic: int,
+    device: torch.device,
+    dtype: torch.dtype,
+) -> dict[str, Any]:
+    scene = simulator.scene
+    c = simulator.config.model.velocity_history
+    return {
+        # Scene facts; "dim" and "bounds" are also what DeepMind's render_rollout.py reads.
+        "dim": scene.dim,
+        "bounds": None if scene.bounds is None else [list(pair) for pair in scene.bounds],
+        "periodic": list(scene.periodic),
+        "connectivity_radius": scene.radius,
+        "kinematic_particle_types": list(scene.kinematic_particle_types),
+        "velocity_history": c,
+        "input_sequence_length": c + 1,
+        # Where the rollout came from and what it is.
+        "trajectory": trajectory.key,
+        "source": trajectory.source,
+        "num_steps": num_steps,
+        "num_particles": trajectory.n_particles,
+        "num_kinematic": num_kinematic,
+        # How it ran (what the timings mean).
+        "device": str(device),
+        "dtype": str(dtype).removeprefix("torch."),
+        "torch_threads": torch.get_num_threads(),
+        "torch_version": torch.__version__,
+        "gns_version": gns.__version__,
+    }
+
+
+def rollout(
+    simulator: LearnedSimulator,
+    trajectory: Trajectory,
+    *,
+    num_steps: int | None = None,
+    device: torch.device | str | None = None,
+    metadata: Mapping[str, Any] | None = None,
+) -> Rollout:
+    """Roll the simulator out from the first C + 1 frames of `trajectory`.
+
+    trajectory: a gns.data Trajectory, positions (T, N, D). C = the simulator's
+        model.velocity_history (5: six history frames).
+    num_steps: S frames to predict; default all the trajectory has, T - (C + 1). More is allowed
+        only without kinematic particles (they need ground truth at every step) and without a
+        step context (it is read at every input frame); ground_truth_rollout is then None.
+    device: where to run; the simulator is moved there in place (as nn.Module.to does) and
+        stays. Default: the simulator's device.
+    metadata: extra plain JSON entries (e.g. the dataset's name, a checkpoint) for
+        Rollout.metadata, over the scene and run facts gathered here.
+
+    Step t feeds frames t ... t + C (particle-major, (N, C + 1, D)), the step context of frame
+    t + C (the last input frame, as training windows do) and the material property, exactly as
+    `simulator.predict_positions` does; kinematic particles are then set to ground-truth frame
+    t + C + 1. Runs under torch.inference_mode() in eval mode; the simulator's previous mode is
+    restored. Raises ValueError for unusable arguments and RolloutDiverged (a ValueError) at the
+    first step with a non-finite position.
+    """
+    c = simulator.config.model.velocity_history
+    history = c + 1
+    particle_type = trajectory.particle_type
+    types = torch.from_numpy(particle_type)
+    kinematic = simulator.kinematic_mask(types).numpy()
+    num_kinematic = int(kinematic.sum())
+    num_steps = _check_num_steps(num_steps, trajectory, history, num_kinematic)
+    if trajectory.dim != simulator.scene.dim:
+        raise ValueError(
+            f"the trajectory is {trajectory.dim}D but the simulator's scene is "
+            f"{simulator.scene.dim}D"
+        )
+
+    if device is not None:
+        simulator.to(device)
+    parameter = next(simulator.parameters())
+    device = parameter.device
+    # Positions in the network's precision but never below float32 (a rollout accumulates).
+    dtype = torch.promote_types(parameter.dtype, torch.float32)
+    n, d, frames = trajectory.n_particles, trajectory.dim, trajectory.num_frames
+
+    positions = trajectory.positions  # (T, N, D) float32, time-major
+    # The model reads particle-major sequences (N, C + 1, D), most recent last.
+    window = torch.from_numpy(positions[:history].transpose(1, 0, 2).copy()).to(device, dtype)
+    types = types.to(device)
+    kinematic_index = torch.from_numpy(np.flatnonzero(kinematic)).to(device)
+    kinematic_truth = torch.from_numpy(positions[:, kinematic]).to(device, dtype)  # (T, K, D)
+    context = None
+    if trajectory.step_context is not None:
+        context = torch.from_numpy(trajectory.step_context).to(device)
+    material = None
+    if trajectory.material_property is not None:
+        material = torch.from_numpy(trajectory.material_property).to(device)
+
+    predicted = torch.empty(num_steps, n, d, dtype=dtype, device=device)
+    seconds = np.zeros((len(TIMING_PARTS), num_steps), dtype=np.float64)
+    now = _clock(device)
+    run_metadata = _run_metadata(simulator, trajectory, num_steps, num_kinematic, device, dtype)
+    run_metadata.update(metadata or {})
+
+    def result(steps: int) -> Rollout:
+        truth = None
+        if history + steps <= frames:
+            truth = positions[history : history + steps].copy()
+        step_context = None
+        if trajectory.step_context is not None:
+            step_context = trajectory.step_context[: c + steps].copy()
+        return Rollout(
+            initial_positions=positions[:history].copy(),
+            predicted_rollout=predicted[:steps].cpu().numpy(),
+            ground_truth_rollout=truth,
+            particle_type=particle_type.copy(),
+            step_context=step_context,
+            metadata={**run_metadata, "num_steps": steps},
+            timings={part: seconds[i, :steps].copy() for i, part in enumerate(TIMING_PARTS)},
+        )
+
+    was_training = simulator.training
+    simulator.eval()
+    try:
+        with torch.inference_mode():
+            for step in range(num_steps):
+                frame = step + c  # the last input frame
+                step_context = None if context is None else context[frame]
+                t0 = now()
+                graph = simulator.graph(window[:, -1])
+                t1 = now()
+                f = simulator.features(
+                    window, types, context=step_context, material_property=material, graph=graph
+                )
+                t2 = now()
+                normalized_acceleration = simulator.model(
+                    f["node_features"],
+                    f["edge_features"],
+                    f["senders"],
+                    f["receivers"],
+                    f["global_features"],
+                )
+                t3 = now()
+                next_position = simulator.decoder_postprocess(normalized_acceleration, window)
+                if num_kinematic:
+                    next_position[kinematic_index] = kinematic_truth[frame + 1]
+                t4 = now()
+                seconds[:, step] = (t1 - t0, t2 - t1, t3 - t2, t4 - t3)
+
+                nonfinite = int((~torch.isfinite(next_position).all(dim=-1)).sum())
+                if nonfinite:
+                    partial = result(step)
+                    partial.metadata["diverged_at_step"] = step
+                    raise RolloutDiverged(
+                        f"rollout diverged at step {step} (predicting frame {frame + 1}): "
+                        f"{nonfinite} of {n} particles have non-finite positions; "
+                        f"the {step} steps before it are in .rollout",
+                        partial,
+                        step,
+                        nonfinite,
+                    )
+                predicted[step] = next_position
+                window = torch.cat([window[:, 1:], next_position[:, None]], dim=1)
+    finally:
+        simulator.train(was_training)
+    return result(num_steps)
+
+
+# ---------------------------------------------------------------------------------- files
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars as Python numbers (json cannot write them), everything else as is."""
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _json(value: Mapping[str, Any], what: str) -> np.ndarray:
+    try:
+        text = json.dumps(value, default=_plain)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"rollout {what} must hold plain JSON values: {error}") from None
+    return np.array(text)  # 0-d unicode: readable without pickle
+
+
+def _arrays(r: Rollout) -> dict[str, np.ndarray]:
+    """The npz members of a rollout (see load_rollout for the schema)."""
+    arrays: dict[str, np.ndarray] = {
+        "schema": np.array(SCHEMA),
+        "initial_positions": r.initial_positions,
+        "predicted_rollout": r.predicted_rollout,
+        "particle_types": r.particle_type,
+        "metadata": _json(r.metadata, "metadata"),
+    }
+    if r.ground_truth_rollout is not None:
+        arrays["ground_truth_rollout"] = r.ground_truth_rollout
+    if r.step_context is not None:
+        arrays["step_context"] = r.step_context
+    for part, seconds in r.timings.items():
+        arrays[_TIMING + part] = np.asarray(seconds, dtype=np.float64)
+    # Array metrics (e.g. an error per step) as arrays, everything else as one JSON object.
+    plain = {k: v for k, v in r.metrics.items() if not isinstance(v, np.ndarray)}
+    arrays["metrics"] = _json(plain, "metrics")
+    for name, value in r.metrics.items():
+        if isinstance(value, np.ndarray):
+            if value.dtype.hasobject:
+                raise ValueError(f"metric {name!r} is an object array; it would need pickle")
+            arrays[_METRIC + name] = value
+    return arrays
+
+
+def save_rollout(path: str | os.PathLike[str], rollout: Rollout) -> None:
+    """Write `rollout` as an npz of plain arrays (no pickle), atomically: a failure part way
+    leaves an existing file at `path` untouched. `path` is used as given (no ".npz" added).
+
+    Members: schema (0-d str), initial_positions, predicted_rollout, ground_truth_rollout (when
+    known), particle_types, step_context (when present), metadata and metrics (0-d JSON str),
+    timing_<part> (S,) float64, metric_<name> for metrics that are numpy arrays.
+    """
+    # dict[str, Any]: numpy's stubs would otherwise match the names against allow_pickle.
+    arrays: dict[str, Any] = _arrays(rollout)
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def _load_json(value: np.ndarray, key: str) -> dict[str, Any]:
+    if value.shape != () or value.dtype.kind != "U":
+        raise ValueError(f"{key} must be a 0-d JSON string, got {value.dtype} {value.shape}")
+    try:
+        loaded = json.loads(str(value))
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{key} is not valid JSON: {error}") from None
+    if not isinstance(loaded, dict):
+        raise ValueError(f"{key} must be a JSON object, got {type(loaded).__name__}")
+    return loaded
+
+
+def _from_arrays(arrays: dict[str, np.ndarray]) -> Rollout:
+    keys = set(arrays)
+    missing = [k for k in _REQUIRED if k not in keys]
+    if missing:
+        raise ValueError(f"missing members {missing}")
+    known = {*_REQUIRED, *_OPTIONAL}
+    unknown = sorted(k for k in keys - known if not k.startswith((_TIMING, _METRIC)))
+    if unknown:
+        raise ValueError(f"unknown members {unknown}")
+    schema = arrays["schema"]
+    if schema.shape != () or str(schema) != SCHEMA:
+        raise ValueError(f"schema is {schema!r}, expected {SCHEMA!r}")
+    for key in ("initial_positions", "predicted_rollout", "ground_truth_rollout"):
+        if key in arrays and not np.isfinite(arrays[key]).all():
+            raise ValueError(f"{key} holds non-finite values")
+    timings = {k.removeprefix(_TIMING): v for k, v in arrays.items() if k.startswith(_TIMING)}
+    for part, seconds in timings.items():
+        if seconds.dtype != np.float64:
+            raise ValueError(f"{_TIMING + part} must be float64 seconds, got {seconds.dtype}")
+    metrics: dict[str, Any] = {}
+    if "metrics" in arrays:
+        metrics = _load_json(arrays["metrics"], "metrics")
+    for key, value in arrays.items():
+        if key.startswith(_METRIC):
+            metrics[key.removeprefix(_METRIC)] = value
+    return Rollout(
+        initial_positions=arrays["initial_positions"],
+        predicted_rollout=arrays["predicted_rollout"],
+        ground_truth_rollout=arrays.get("ground_truth_rollout"),
+        particle_type=arrays["particle_types"],
+        step_context=arrays.get("step_context"),
+        metadata=_load_json(arrays["metadata"], "metadata"),
+        timings=timings,
+        metrics=metrics,
+    )
+
+
+def load_rollout(path: str | os.PathLike[str]) -> Rollout:
+    """Read a file written by save_rollout (np.load with allow_pickle=False). A damaged,
+    truncated or foreign file raises ValueError naming the path and what is wrong."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            # Reading every member checks its CRC, so damage shows here, not later.
+            arrays = {key: npz[key] for key in npz.files}
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise ValueError(f"{os.fspath(path)}: not a readable rollout file ({error})") from None
+    try:
+        return _from_arrays(arrays)
+    except ValueError as error:
+        raise ValueError(f"{os.fspath(path)}: not a valid rollout file: {error}") from None
+
+
+def save_deepmind_pickle(path: str | os.PathLike[str], rollout: Rollout) -> None:
+    """Write `rollout` in the layout of DeepMind learning_to_simulate's rollout pickles
+    (train.py, eval_rollout mode), atomically.
+
+    A dict of numpy arrays: initial_positions (C + 1, N, D) time-major (render_rollout.py
+    concatenates it with predicted_rollout along axis 0), predicted_rollout and
+    ground_truth_rollout (S, N, D), particle_types (N,), metadata (a dict; render_rollout.py
+    reads metadata["bounds"]) and, when the rollout has a step context, global_context
+    (DeepMind stores the trajectory's whole context and reads frame step + C at step t; ours
+    has frames 0 ... C + S - 1, so the same index works). DeepMind's rollouts always have
+    ground truth, so one without it is refused.
+    """
+    if rollout.ground_truth_rollout is None:
+        raise ValueError(
+            "the DeepMind rollout layout needs ground_truth_rollout; this rollout ran past the "
+            "end of its trajectory"
+        )
+    payload: dict[str, Any] = {
+        "initial_positions": rollout.initial_positions,
+        "predicted_rollout": rollout.predicted_rollout,
+        "ground_truth_rollout": rollout.ground_truth_rollout,
+        "particle_types": rollout.particle_type,
+        "metadata": dict(rollout.metadata),
+    }
+    if rollout.step_context is not None:
+        payload["global_context"] = rollout.step_context
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        pickle.dump(payload, f, protocol=4)  # protocol 4: readable by Python >= 3.4

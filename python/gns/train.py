@@ -1,0 +1,571 @@
+"""Training: the loop of section B.4, checkpoints that resume exactly, logs, and DDP.
+
+One gradient step (`TrainingStep.forward`): sample the input noise (C.2), add the batch to the
+running statistics (B.2), predict the normalised acceleration, and take the squared error summed
+over dimensions and averaged over the non-kinematic particles of the whole (global) batch.
+Adam with lr(j) = final + (start - final) * 0.1^(j / decay_steps).
+
+Runs as one process or under torchrun (torch.distributed DDP: gloo on the CPU, nccl on CUDA).
+All training goes through the DDP wrapper's forward, so gradients are averaged across ranks;
+the running statistics are summed across ranks by the normalisers themselves (DDP's buffer
+broadcast is off: it would overwrite them with rank 0's).
+
+A run folder holds:
+    config.json           the settings (gns train --config accepts it back)
+    checkpoints/          step_000001000.pt ...: plain dicts written atomically (torch.save)
+    train.csv, valid.csv  loss and validation figures per logged step
+    tensorboard/          the same figures for TensorBoard
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import Tensor, nn
+
+from gns.config import Config, from_dict, to_dict
+from gns.data import open_dataset
+from gns.data.atomic import atomic_file
+from gns.data.windows import Batch, WindowSampler, collate, trajectory_windows
+from gns.normalization import RunningNormalizer
+from gns.simulator import LearnedSimulator, Scene
+
+__all__ = [
+    "TrainingStep",
+    "batch_tensors",
+    "latest_checkpoint",
+    "load_checkpoint",
+    "load_simulator",
+    "resolve_device",
+    "save_checkpoint",
+    "train",
+]
+
+CHECKPOINT_FORMAT = "gns-checkpoint-1"
+
+
+# ---------------------------------------------------------------------------------- devices
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    """ "auto" is CUDA when there is a GPU, else the CPU; other names are checked to exist."""
+    if str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    resolved = torch.device(device)
+    if resolved.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {str(device)!r} asked for, but torch sees no CUDA device")
+    return resolved
+
+
+# ---------------------------------------------------------------------------------- one step
+
+
+def batch_tensors(batch: Batch, device: torch.device) -> dict[str, Tensor | None]:
+    """A Batch (time-major numpy) as the simulator's particle-major tensors on `device`."""
+
+    def tensor(x: np.ndarray | None) -> Tensor | None:
+        return None if x is None else torch.from_numpy(np.ascontiguousarray(x)).to(device)
+
+    positions = batch.positions.transpose(1, 0, 2)  # (N, C + 2, D)
+    return {
+        "position_sequence": tensor(positions[:, :-1]),
+        "next_position": tensor(positions[:, -1]),
+        "particle_type": tensor(batch.particle_type),
+        "n_node": tensor(batch.n_node),
+        "context": tensor(batch.step_context),
+        "material_property": tensor(batch.material_property),
+    }
+
+
+class TrainingStep(nn.Module):
+    """The loss of one batch, as a module so DDP's forward (and its gradient hooks) see it.
+
+    forward returns (sum over non-kinematic particles of the squared acceleration error summed
+    over dimensions, the number of those particles); the trainer divides by the global count.
+    """
+
+    def __init__(self, simulator: LearnedSimulator) -> None:
+        super().__init__()
+        self.simulator = simulator
+
+    def forward(
+        self,
+        position_sequence: Tensor,
+        next_position: Tensor,
+        position_sequence_noise: Tensor,
+        particle_type: Tensor,
+        n_node: Tensor | None = None,
+        context: Tensor | None = None,
+        material_property: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        predicted, target = self.simulator.predict_accelerations(
+            next_position,
+            position_sequence,
+            position_sequence_noise,
+            particle_type,
+            n_node,
+            context,
+            material_property,
+        )
+        free = ~self.simulator.kinematic_mask(particle_type)
+        squared = (predicted.float() - target.float()).square().sum(dim=-1)
+        return squared[free].sum(), free.sum()
+
+
+# ---------------------------------------------------------------------------------- checkpoints
+
+
+def _statistics_dict(metadata: Any) -> dict[str, list[float] | None]:
+    names = ("vel_mean", "vel_std", "acc_mean", "acc_std", "context_mean", "context_std")
+    out: dict[str, list[float] | None] = {}
+    for name in names:
+        value = getattr(metadata, name, None)
+        out[name] = None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
+    return out
+
+
+def _scene_from_dict(data: dict[str, Any]) -> Scene:
+    def tuples(value: Any) -> Any:
+        return tuple(tuples(v) for v in value) if isinstance(value, list) else value
+
+    return Scene(**{key: tuples(value) for key, value in data.items()})
+
+
+def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:
+    """torch.save `state` to `path` atomically (a crash never leaves a half-written file)."""
+    with atomic_file(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A checkpoint dict; tensors are loaded on the CPU (weights_only: nothing is executed)."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise ValueError(f"{os.fspath(path)}: not a readable gns checkpoint ({err})") from err
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{os.fspath(path)}: not a gns checkpoint (format {CHECKPOINT_FORMAT})")
+    return state
+
+
+def latest_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
+    """The checkpoint with the highest step in run_dir/checkpoints, or None."""
+    folder = Path(run_dir) / "checkpoints"
+    found = sorted(folder.glob("step_*.pt")) if folder.is_dir() else []
+    return found[-1] if found else None
+
+
+def load_simulator(
+    path: str | os.PathLike[str], device: str | torch.device = "cpu"
+) -> LearnedSimulator:
+    """The trained simulator of a checkpoint file or a run folder (its latest checkpoint)."""
+    checkpoint = Path(path)
+    if checkpoint.is_dir():
+        found = latest_checkpoint(checkpoint)
+        if found is None:
+            raise ValueError(f"{checkpoint}: no checkpoints in {checkpoint / 'checkpoints'}")
+        checkpoint = found
+    state = load_checkpoint(checkpoint)
+    simulator = _build_simulator(state["config"], state["scene"], state["statistics"])
+    simulator.load_state_dict(state["model"])
+    return simulator.to(resolve_device(device))
+
+
+def _build_simulator(
+    config: dict[str, Any], scene: dict[str, Any], statistics: dict[str, Any] | None
+) -> LearnedSimulator:
+    stats = None if statistics is None else SimpleNamespace(**statistics)
+    return LearnedSimulator(_scene_from_dict(scene), from_dict(Config, config), statistics=stats)
+
+
+# ---------------------------------------------------------------------------------- logs
+
+
+class RunLog:
+    """Figures to CSV files and TensorBoard (rank 0 only); on resume, rows past the
+    checkpoint's step are dropped, because those steps are about to be trained again."""
+
+    def __init__(self, run_dir: Path, resume_step: int | None) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.run_dir = run_dir
+        if resume_step is not None:
+            for name in ("train.csv", "valid.csv"):
+                self._truncate(run_dir / name, resume_step)
+        purge = None if resume_step is None else resume_step + 1
+        self.tensorboard = SummaryWriter(str(run_dir / "tensorboard"), purge_step=purge)
+
+    @staticmethod
+    def _truncate(path: Path, step: int) -> None:
+        if not path.exists():
+            return
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+        kept = rows[:1] + [row for row in rows[1:] if row and int(row[0]) <= step]
+        with atomic_file(path) as tmp, open(tmp, "w", newline="") as f:
+            csv.writer(f).writerows(kept)
+
+    def write(self, name: str, step: int, values: dict[str, float]) -> None:
+        path = self.run_dir / f"{name}.csv"
+        new = not path.exists()
+        with open(path, "a", newline="") as f:
+            writer = csv.writer(f)
+            if new:
+                writer.writerow(["step", *values])
+            writer.writerow([step, *(f"{v:.9g}" for v in values.values())])
+        for key, value in values.items():
+            self.tensorboard.add_scalar(f"{name}/{key}", value, step)
+        self.tensorboard.flush()
+
+    def close(self) -> None:
+        self.tensorboard.close()
+
+
+class Progress:
+    """A one-line progress display on stderr: step, loss, steps/s and time left."""
+
+    def __init__(self, total: int, start: int, enabled: bool) -> None:
+        self.total, self.start, self.enabled = total, start, enabled
+        self.started = time.perf_counter()
+        self.tty = sys.stderr.isatty()
+        self.last_shown = 0.0
+
+    def rate(self, step: int) -> float:
+        elapsed = time.perf_counter() - self.started
+        return (step - self.start) / elapsed if elapsed > 0 else 0.0
+
+    def show(self, step: int, loss: float, force: bool = False) -> None:
+        now = time.perf_counter()
+        if not self.enabled or (self.tty and not force and now - self.last_shown < 0.5):
+            return
+        if not self.tty and not force:
+            return
+        self.last_shown = now
+        rate = self.rate(step)
+        left = (self.total - step) / rate if rate > 0 else float("nan")
+        eta = time.strftime("%H:%M:%S", time.gmtime(left)) if math.isfinite(left) else "--"
+        line = f"step {step}/{self.total}  loss {loss:.4g}  {rate:.2f} steps/s  left {eta}"
+        sys.stderr.write(("\r" + line + "   ") if self.tty else line + "\n")
+        sys.stderr.flush()
+
+    def close(self) -> None:
+        if self.enabled and self.tty:
+            sys.stderr.write("\n")
+
+
+# ---------------------------------------------------------------------------------- validation
+
+
+@torch.no_grad()
+def validate(
+    simulator: LearnedSimulator,
+    windows: Sequence[Batch],
+    trajectories: Sequence[Any],
+    rollout_steps: int,
+    device: torch.device,
+) -> dict[str, float]:
+    """One-step position MSE over fixed windows and mean rollout MSE over a few trajectories,
+    both over non-kinematic particles, with the model in eval mode (no noise, no statistics)."""
+    was_training = simulator.training
+    simulator.eval()
+    figures: dict[str, float] = {}
+    try:
+        if windows:
+            errors = []
+            for batch in windows:
+                t = batch_tensors(batch, device)
+                predicted = simulator.predict_positions(
+                    t["position_sequence"],  # type: ignore[arg-type]
+                    t["particle_type"],  # type: ignore[arg-type]
+                    t["n_node"],
+                    t["context"],
+                    t["material_property"],
+                )
+                free = ~simulator.kinematic_mask(t["particle_type"])  # type: ignore[arg-type]
+                error = (predicted - t["next_position"]).square().sum(-1)  # type: ignore[operator]
+                errors.append(error[free].mean() / simulator.scene.dim)
+            figures["one_step_mse"] = float(torch.stack(errors).mean())
+        if trajectories and rollout_steps:
+            from gns.rollout import rollout
+
+            errors = []
+            history = simulator.config.model.velocity_history + 1
+            for trajectory in trajectories:
+                steps = min(rollout_steps, trajectory.num_frames - history)
+                result = rollout(simulator, trajectory, num_steps=steps, device=device)
+                free = ~simulator.kinematic_mask(torch.from_numpy(trajectory.particle_type))
+                difference = result.predicted_rollout - result.ground_truth_rollout
+                errors.append(float(np.mean(np.square(difference[:, free.numpy()]))))
+            figures["rollout_mse"] = float(np.mean(errors))
+    finally:
+        simulator.train(was_training)
+    return figures
+
+
+def _validation_data(
+    path: str | os.PathLike[str], config: Config, history: int
+) -> tuple[list[Batch], list[Any]]:
+    """Fixed validation windows (one per batch) and trajectories from the valid split."""
+    train_config = config.train
+    if not train_config.validate_every:
+        return [], []
+    try:
+        dataset = open_dataset(path, "valid")
+    except ValueError:
+        return [], []
+    trajectories = [dataset[i] for i in range(len(dataset))]
+    pairs = [
+        (i, start)
+        for i, trajectory in enumerate(trajectories)
+        for start in range(max(0, trajectory.num_frames - history))
+    ]
+    rng = np.random.default_rng([train_config.seed, 1])
+    chosen = rng.permutation(len(pairs))[: train_config.validation_windows]
+    windows = [
+        collate(list(trajectory_windows(trajectories[pairs[k][0]], history, [pairs[k][1]])))
+        for k in sorted(chosen)
+    ]
+    return windows, trajectories[: train_config.validation_rollouts]
+
+
+# ---------------------------------------------------------------------------------- the loop
+
+
+def _distributed() -> tuple[int, int, int]:
+    """(rank, world_size, local_rank), starting the process group under torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world == 1:
+        return 0, 1, 0
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if not dist.is_initialized():
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+        dist.init_process_group(backend)
+    return dist.get_rank(), dist.get_world_size(), local
+
+
+def _all_reduce_sum(tensor: Tensor) -> None:
+    dist.all_reduce(tensor, op=dist.ReduceOp.SUM)
+
+
+def train(
+    data: str | os.PathLike[str],
+    run_dir: str | os.PathLike[str],
+    config: Config | None = None,
+    *,
+    steps: int | None = None,
+    resume: bool = False,
+    device: str | torch.device = "auto",
+    progress: bool = True,
+) -> LearnedSimulator:
+    """Train a GNS on the dataset at `data` (train split; validation on valid) into run_dir.
+
+    resume=True continues from the newest checkpoint in run_dir with its saved settings (the
+    `config` argument must then be None or differ only in train.steps, to train for longer):
+    the parameters after N + M steps equal those of an uninterrupted run on the CPU.
+    steps overrides config.train.steps (e.g. to resume a finished run for longer). A run
+    folder that already has checkpoints is never overwritten without resume.
+    """
+    run_dir = Path(run_dir)
+    rank, world, local_rank = _distributed()
+    device = resolve_device(device)
+    if device.type == "cuda" and world > 1:
+        device = torch.device("cuda", local_rank)
+        torch.cuda.set_device(device)
+    leader = rank == 0
+
+    checkpoint: dict[str, Any] | None = None
+    found = latest_checkpoint(run_dir)
+    if resume:
+        if found is None:
+            raise ValueError(f"--resume: no checkpoint in {run_dir / 'checkpoints'}")
+        checkpoint = load_checkpoint(found)
+        saved = from_dict(Config, checkpoint["config"])
+        # Only the number of steps may change on resume (to train a run for longer).
+        if config is not None:
+            same_steps = dataclasses.replace(config.train, steps=saved.train.steps)
+            if dataclasses.replace(config, train=same_steps) != saved:
+                raise ValueError(
+                    f"--resume: the settings differ from the run's ({found}) in more than "
+                    "train.steps; resume with the run's own settings or start a new run folder"
+                )
+            saved = dataclasses.replace(
+                saved, train=dataclasses.replace(saved.train, steps=config.train.steps)
+            )
+        config = saved
+    elif found is not None:
+        raise ValueError(f"{run_dir} already holds checkpoints; pass --resume or another --out")
+    config = config or Config()
+    if steps is not None:
+        config = dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps))
+    tc = config.train
+
+    dataset = open_dataset(data, "train")
+    history = config.model.velocity_history + 1
+    if checkpoint is not None:
+        simulator = _build_simulator(
+            checkpoint["config"], checkpoint["scene"], checkpoint["statistics"]
+        )
+        simulator.load_state_dict(checkpoint["model"])
+    else:
+        scene = Scene.from_dataset(dataset, config.scene)
+        torch.manual_seed(tc.seed)  # the initial weights (the same on every rank)
+        simulator = LearnedSimulator(scene, config, statistics=dataset.metadata)
+    simulator.to(device).train()
+    statistics = _statistics_dict(dataset.metadata)
+
+    step_module: nn.Module = TrainingStep(simulator)
+    if world > 1:
+        for module in simulator.modules():
+            if isinstance(module, RunningNormalizer):
+                module.all_reduce = _all_reduce_sum
+        ids = [device.index] if device.type == "cuda" else None
+        step_module = nn.parallel.DistributedDataParallel(
+            step_module, device_ids=ids, broadcast_buffers=False
+        )
+    optimizer = torch.optim.Adam(simulator.parameters(), lr=tc.learning_rate)
+    sampler = WindowSampler(
+        dataset,
+        history,
+        seed=tc.seed,
+        trajectories_in_memory=tc.trajectories_in_memory,
+        rank=rank,
+        world_size=world,
+    )
+    generator = torch.Generator(device=device)
+    generator.manual_seed(tc.seed * 1_000_003 + rank)
+    start = 0
+    if checkpoint is not None:
+        saved_world = len(checkpoint["noise_generator"])
+        if saved_world != world:
+            raise ValueError(
+                f"--resume: the run was trained by {saved_world} process(es), this is {world}; "
+                "an exact continuation needs the same number"
+            )
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        sampler.load_state_dict(checkpoint["sampler"])
+        generator.set_state(checkpoint["noise_generator"][rank].to(torch.uint8))
+        start = int(checkpoint["step"])
+
+    if leader:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "checkpoints").mkdir(exist_ok=True)
+        with atomic_file(run_dir / "config.json") as tmp:
+            tmp.write_text(json.dumps(to_dict(config), indent=1) + "\n")
+    log = RunLog(run_dir, start if checkpoint is not None else None) if leader else None
+    valid_windows, valid_trajectories = (
+        _validation_data(data, config, history) if leader else ([], [])
+    )
+    meter = Progress(tc.steps, start, enabled=progress and leader)
+
+    def checkpoint_state(step: int) -> dict[str, Any]:
+        states = [generator.get_state()]
+        if world > 1:  # every rank's noise stream, so each resumes its own
+            local = states[0].to(device)
+            states = [torch.empty_like(local) for _ in range(world)]
+            dist.all_gather(states, local)
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": step,
+            "config": to_dict(config),
+            "scene": dataclasses.asdict(simulator.scene),
+            "statistics": statistics,
+            "model": simulator.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "sampler": sampler.state_dict(),
+            "noise_generator": [s.cpu() for s in states],
+        }
+
+    def write_checkpoint(step: int) -> None:
+        state = checkpoint_state(step)
+        if not leader:
+            return
+        save_checkpoint(run_dir / "checkpoints" / f"step_{step:09d}.pt", state)
+        for old in sorted((run_dir / "checkpoints").glob("step_*.pt"))[: -tc.keep_checkpoints]:
+            old.unlink()
+
+    losses: list[float] = []
+    step = start
+    try:
+        for step in range(start, tc.steps):
+            for group in optimizer.param_groups:
+                group["lr"] = tc.learning_rate_at(step)
+            t = batch_tensors(sampler.next_batch(tc.batch_size, tc.batch_particles), device)
+            noise = simulator.sample_noise(
+                t["position_sequence"],  # type: ignore[arg-type]
+                t["particle_type"],  # type: ignore[arg-type]
+                generator,
+            )
+            squared_sum, count = step_module(
+                t["position_sequence"],
+                t["next_position"],
+                noise,
+                t["particle_type"],
+                t["n_node"],
+                t["context"],
+                t["material_property"],
+            )
+            count = count.to(squared_sum.dtype)
+            if world > 1:
+                _all_reduce_sum(count)
+            # DDP averages gradients over ranks: world * (local sum) / (global count) makes that
+            # average the gradient of the mean over every particle of the global batch.
+            loss = squared_sum * world / count.clamp(min=1.0)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            value = float(loss.detach())
+            if not math.isfinite(value):
+                raise FloatingPointError(
+                    f"the training loss became {value} at step {step}; the last checkpoint "
+                    "holds the parameters before it"
+                )
+            losses.append(value)
+            done = step + 1
+            meter.show(done, value)
+            if done % tc.log_every == 0 or done == tc.steps:
+                mean = torch.tensor(np.mean(losses), dtype=torch.float64, device=device)
+                if world > 1:
+                    _all_reduce_sum(mean)
+                    mean /= world
+                if log is not None:
+                    log.write(
+                        "train",
+                        done,
+                        {
+                            "loss": float(mean),
+                            "learning_rate": tc.learning_rate_at(step),
+                            "steps_per_second": meter.rate(done),
+                        },
+                    )
+                meter.show(done, float(mean), force=True)
+                losses = []
+            if log is not None and tc.validate_every and done % tc.validate_every == 0:
+                figures = validate(
+                    simulator,
+                    valid_windows,
+                    valid_trajectories,
+                    tc.validation_rollout_steps,
+                    device,
+                )
+                if figures:
+                    log.write("valid", done, figures)
+            if done % tc.checkpoint_every == 0 or done == tc.steps:
+                write_checkpoint(done)
+    finally:
+        meter.close()
+        if log is not None:
+            log.close()
+    return simulator

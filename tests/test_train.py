@@ -1,0 +1,274 @@
+"""Training: exact resume, the schedule, the loss definition, checkpoints, logs and DDP."""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from data_helpers import metadata_dict, write_metadata
+from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
+from gns.data import Trajectory
+from gns.data.h5 import write_h5
+from gns.data.windows import WindowSampler
+from gns.train import (
+    TrainingStep,
+    batch_tensors,
+    latest_checkpoint,
+    load_checkpoint,
+    load_simulator,
+    train,
+)
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+TINY = ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=2)
+
+
+def damped_motion(rng: np.random.Generator, frames: int, particles: int, key: int) -> Trajectory:
+    """Free particles whose velocity shrinks by 10% a frame: acceleration = -0.1 velocity, a
+    rule the model can learn; two static kinematic particles; a 1-wide context."""
+    velocity = rng.normal(0.0, 1e-3, size=(particles, 2))
+    positions = [rng.uniform(0.3, 0.7, size=(particles, 2))]
+    for _ in range(frames - 1):
+        velocity = 0.9 * velocity
+        positions.append(positions[-1] + velocity)
+    stacked = np.stack(positions).astype(np.float32)
+    types = np.full(particles, 5)
+    types[-2:] = 3
+    stacked[:, -2:] = stacked[0, -2:]
+    context = np.full((frames, 1), 0.5, dtype=np.float32)
+    return Trajectory(stacked, types, context, key=key)
+
+
+def make_dataset(folder: Path, trajectories: int = 6, frames: int = 12, particles: int = 24):
+    """A small h5 dataset of damped motion (train: all, valid: the first two)."""
+    rng = np.random.default_rng(0)
+    items = [damped_motion(rng, frames, particles, k) for k in range(trajectories)]
+    write_metadata(folder, metadata_dict(sequence_length=frames - 1))
+    write_h5(folder / "train.h5", items)
+    write_h5(folder / "valid.h5", items[:2])
+    return folder
+
+
+def config(steps: int, **train: object) -> Config:
+    settings: dict = dict(
+        steps=steps,
+        log_every=2,
+        checkpoint_every=3,
+        validate_every=0,
+        trajectories_in_memory=2,
+        learning_rate=1e-3,
+    )
+    settings.update(train)
+    return Config(model=TINY, train=TrainConfig(**settings))
+
+
+def parameters(simulator) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in simulator.state_dict().items()}
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_resume_continues_exactly(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    # 6 trajectories, 2 in memory, 6 windows each at batch 2: chunks change every 6 steps, and
+    # the 21 steps cross epochs, so the sampler, noise stream and optimiser state all matter.
+    straight = train(data, tmp_path / "a", config(21), progress=False)
+    train(data, tmp_path / "b", config(8), progress=False)
+    resumed = train(data, tmp_path / "b", config(21), resume=True, progress=False)
+    a, b = parameters(straight), parameters(resumed)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    # The logged losses of the resumed run are those of the uninterrupted one, each step once.
+    rows_a, rows_b = read_csv(tmp_path / "a/train.csv"), read_csv(tmp_path / "b/train.csv")
+    assert [r["step"] for r in rows_b] == [r["step"] for r in rows_a]
+    assert [r["loss"] for r in rows_b] == [r["loss"] for r in rows_a]
+    # The running statistics came through too (they are part of the model's state).
+    count = a["velocity_normalizer.count"]
+    assert count > 0
+
+
+def test_resume_from_a_mid_run_checkpoint_redoes_later_steps_and_logs(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    train(data, tmp_path / "run", config(12), progress=False)
+    final = parameters(load_simulator(tmp_path / "run"))
+    # A crash after step 9: the step-12 checkpoint never got written.
+    (tmp_path / "run/checkpoints/step_000000012.pt").unlink()
+    resumed = train(data, tmp_path / "run", None, resume=True, progress=False)
+    for key, value in parameters(resumed).items():
+        assert torch.equal(value, final[key]), key
+    steps = [int(r["step"]) for r in read_csv(tmp_path / "run/train.csv")]
+    assert steps == sorted(set(steps)) == [2, 4, 6, 8, 10, 12]
+
+
+def test_checkpoints_are_kept_pruned_and_self_contained(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    train(data, tmp_path / "run", config(10, keep_checkpoints=2), progress=False)
+    names = sorted(p.name for p in (tmp_path / "run/checkpoints").iterdir())
+    # Every 3 steps and at the end; only the newest two kept; no temporary files left.
+    assert names == ["step_000000009.pt", "step_000000010.pt"]
+    state = load_checkpoint(latest_checkpoint(tmp_path / "run"))
+    assert state["step"] == 10 and state["config"]["model"]["latent_size"] == 8
+    assert state["scene"]["context_size"] == 1
+
+
+def test_existing_run_is_not_overwritten_and_resume_needs_a_checkpoint(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    with pytest.raises(ValueError, match="no checkpoint"):
+        train(data, tmp_path / "empty", config(3), resume=True, progress=False)
+    train(data, tmp_path / "run", config(3), progress=False)
+    with pytest.raises(ValueError, match="already holds checkpoints"):
+        train(data, tmp_path / "run", config(3), progress=False)
+    other = Config(
+        model=ModelConfig(latent_size=16, message_passing_steps=2), train=config(6).train
+    )
+    with pytest.raises(ValueError, match="differ"):
+        train(data, tmp_path / "run", other, resume=True, progress=False)
+
+
+def test_learning_rate_follows_the_papers_schedule(tmp_path):
+    tc = TrainConfig()
+    # alpha(j) = alpha_final + (alpha_start - alpha_final) * 0.1^(j / 5e6), by hand:
+    assert tc.learning_rate_at(0) == pytest.approx(1e-4)
+    assert tc.learning_rate_at(5_000_000) == pytest.approx(1e-6 + 99e-6 * 0.1)
+    assert tc.learning_rate_at(10_000_000) == pytest.approx(1e-6 + 99e-6 * 0.01)
+    data = make_dataset(tmp_path / "data")
+    fast = dict(learning_rate=1e-2, learning_rate_final=1e-3, learning_rate_decay_steps=4.0)
+    train(data, tmp_path / "run", config(8, **fast), progress=False)
+    for row in read_csv(tmp_path / "run/train.csv"):
+        j = int(row["step"]) - 1  # the rate used by the last step of each logged interval
+        expected = 1e-3 + (1e-2 - 1e-3) * 0.1 ** (j / 4.0)
+        assert float(row["learning_rate"]) == pytest.approx(expected, rel=1e-6)
+
+
+def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    simulator = train(data, tmp_path / "run", config(2), progress=False)
+    simulator.eval()
+    from gns.data import open_dataset
+
+    sampler = WindowSampler(open_dataset(data), seed=3)
+    t = batch_tensors(sampler.next_batch(2), torch.device("cpu"))
+    step = TrainingStep(simulator)
+    noise = torch.zeros_like(t["position_sequence"])
+    with torch.no_grad():
+        squared_sum, count = step(
+            t["position_sequence"], t["next_position"], noise, t["particle_type"], t["n_node"],
+            t["context"], t["material_property"],
+        )  # fmt: skip
+    free = ~np.isin(t["particle_type"].numpy(), [3])
+    assert int(count) == free.sum() == 2 * (24 - 2)
+    # By hand: the normalised target acceleration from positions and the running statistics.
+    position = t["position_sequence"].double()
+    acceleration = t["next_position"].double() - 2 * position[:, -1] + position[:, -2]
+    normalizer = simulator.acceleration_normalizer
+    target = (acceleration - normalizer.mean) / normalizer.std
+    predicted = simulator(
+        t["position_sequence"], t["particle_type"], t["n_node"], t["context"]
+    ).double()
+    expected = (predicted - target).square().sum(-1)[torch.from_numpy(free)].sum()
+    assert float(squared_sum) == pytest.approx(float(expected), rel=1e-5)
+    # Moving the kinematic particles' next positions changes nothing.
+    moved = t["next_position"].clone()
+    moved[~torch.from_numpy(free)] += 0.05
+    with torch.no_grad():
+        again, _ = step(
+            t["position_sequence"], moved, noise, t["particle_type"], t["n_node"], t["context"],
+        )  # fmt: skip
+    assert float(again) == float(squared_sum)
+
+
+def test_training_reduces_the_loss_and_validates(tmp_path):
+    data = make_dataset(tmp_path / "data", trajectories=4, frames=30)
+    settings = dict(log_every=20, validate_every=40, validation_windows=8, checkpoint_every=80)
+    settings.update(validation_rollouts=1, validation_rollout_steps=5, learning_rate=3e-3)
+    cfg = Config(model=TINY, noise=NoiseConfig(std=0.0), train=config(80, **settings).train)
+    train(data, tmp_path / "run", cfg, progress=False)
+    losses = [float(r["loss"]) for r in read_csv(tmp_path / "run/train.csv")]
+    assert losses[-1] < 0.7 * losses[0]
+    valid = read_csv(tmp_path / "run/valid.csv")
+    assert [int(r["step"]) for r in valid] == [40, 80]
+    for row in valid:
+        assert np.isfinite(float(row["one_step_mse"])) and np.isfinite(float(row["rollout_mse"]))
+    # TensorBoard's own reader sees the same figures.
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(tmp_path / "run/tensorboard"))
+    events.Reload()
+    logged = [e.value for e in events.Scalars("train/loss")]
+    assert logged == pytest.approx(losses, rel=1e-6)
+
+
+def test_a_nan_loss_stops_training_with_the_step(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    with pytest.raises(FloatingPointError, match="at step 1"):
+        train(data, tmp_path / "run", config(3, learning_rate=float("inf")), progress=False)
+
+
+DDP_SCRIPT = """
+import sys, torch
+torch.set_num_threads(1)
+from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
+from gns.train import train
+import torch.distributed as dist
+data, out, steps, batch = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+config = Config(
+    model=ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=2),
+    noise=NoiseConfig(std=0.0),
+    train=TrainConfig(steps=steps, batch_size=batch, log_every=1, checkpoint_every=steps,
+                      validate_every=0, trajectories_in_memory=2, learning_rate=1e-3),
+)
+simulator = train(data, out, config, progress=False)
+rank = dist.get_rank() if dist.is_initialized() else 0
+torch.save(simulator.state_dict(), f"{out}/rank{rank}.pt")
+"""
+
+
+def test_ddp_ranks_stay_identical_and_match_one_process_on_the_combined_batch(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    script = tmp_path / "run_train.py"
+    script.write_text(textwrap.dedent(DDP_SCRIPT))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    torchrun = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc_per_node",
+        "2",
+    ]
+    subprocess.run(
+        [*torchrun, str(script), str(data), str(tmp_path / "ddp"), "6", "1"],
+        check=True,
+        env=env,
+        timeout=300,
+    )
+    subprocess.run(
+        [sys.executable, str(script), str(data), str(tmp_path / "one"), "6", "2"],
+        check=True,
+        env=env,
+        timeout=300,
+    )
+    rank0 = torch.load(tmp_path / "ddp/rank0.pt")
+    rank1 = torch.load(tmp_path / "ddp/rank1.pt")
+    single = torch.load(tmp_path / "one/rank0.pt")
+    for key in rank0:
+        assert torch.equal(rank0[key], rank1[key]), key
+        # The same windows, the same global mean loss, summed in another order.
+        torch.testing.assert_close(rank0[key], single[key], rtol=1e-4, atol=1e-6, msg=key)
+    # Each rank saw its own half of the data: the statistics count both halves.
+    assert rank0["acceleration_normalizer.count"] == single["acceleration_normalizer.count"]
+    losses_ddp = [float(r["loss"]) for r in read_csv(tmp_path / "ddp/train.csv")]
+    losses_one = [float(r["loss"]) for r in read_csv(tmp_path / "one/train.csv")]
+    assert losses_ddp == pytest.approx(losses_one, rel=1e-4)
