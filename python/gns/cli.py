@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gns", description=__doc__)
@@ -29,7 +31,43 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--device", default="auto", help="auto (default), cpu, cuda, cuda:1, ...")
     train.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
     train.add_argument("--quiet", action="store_true", help="no progress line")
-    train.set_defaults(run=run_train)
+    train.set_defaults(handler=run_train)
+
+    roll = sub.add_parser(
+        "rollout",
+        help="autoregressive rollouts of a trained run on a split",
+        description="One file per trajectory: rollout_{split}_{i}.npz (our schema) and, with "
+        "--deepmind, rollout_{split}_{i}.pkl (DeepMind's layout). Prints the time per step "
+        "split into graph building, features, model and integration.",
+    )
+    roll.add_argument("--run", type=Path, required=True, help="run folder or checkpoint file")
+    roll.add_argument("--data", type=Path, required=True, help="dataset folder")
+    roll.add_argument("--split", default="test")
+    roll.add_argument("--out", type=Path, help="default: RUN/rollouts/SPLIT")
+    roll.add_argument("--trajectories", type=int, nargs="*", help="indices (default: all)")
+    roll.add_argument("--steps", type=int, help="frames to predict (default: all there are)")
+    roll.add_argument("--deepmind", action="store_true", help="also write DeepMind pickles")
+    roll.add_argument("--device", default="auto")
+    roll.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    roll.set_defaults(handler=run_rollout)
+
+    ev = sub.add_parser(
+        "eval",
+        help="one-step and rollout metrics of a run next to the constant-velocity baseline",
+        description="Reads the rollouts written by `gns rollout` (RUN/rollouts/SPLIT), computes "
+        "MSE over time and at horizons, optimal transport and MMD (bandwidth 0.1) for the model "
+        "and for the constant-velocity baseline, plus one-step MSE over the split's windows; "
+        "writes RUN/eval_SPLIT.json.",
+    )
+    ev.add_argument("--run", type=Path, required=True, help="run folder")
+    ev.add_argument("--data", type=Path, required=True, help="dataset folder")
+    ev.add_argument("--split", default="test")
+    ev.add_argument("--rollouts", type=Path, help="default: RUN/rollouts/SPLIT")
+    ev.add_argument("--one-step-windows", type=int, default=512, help="0: skip one-step MSE")
+    ev.add_argument("--every", type=int, default=1, help="OT and MMD on every k-th frame")
+    ev.add_argument("--device", default="auto")
+    ev.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    ev.set_defaults(handler=run_eval)
     return parser
 
 
@@ -60,10 +98,80 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_rollout(args: argparse.Namespace) -> int:
+    from gns.data import open_dataset
+    from gns.rollout import RolloutDiverged, rollout, save_deepmind_pickle, save_rollout
+    from gns.train import load_simulator, resolve_device
+
+    set_threads(args.threads)
+    device = resolve_device(args.device)
+    simulator = load_simulator(args.run, device)
+    dataset = open_dataset(args.data, args.split)
+    out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "rollouts" / args.split
+    out.mkdir(parents=True, exist_ok=True)
+    indices = args.trajectories if args.trajectories else range(len(dataset))
+    diverged = 0
+    for i in indices:
+        trajectory = dataset[i]
+        info = {"dataset": str(args.data), "split": args.split, "checkpoint": str(args.run)}
+        try:
+            result = rollout(simulator, trajectory, num_steps=args.steps, metadata=info)
+        except RolloutDiverged as err:
+            print(f"trajectory {i}: {err}", file=sys.stderr)
+            result, diverged = err.rollout, diverged + 1
+        stem = out / f"rollout_{args.split}_{i}"
+        save_rollout(stem.with_suffix(".npz"), result)
+        if args.deepmind:
+            save_deepmind_pickle(stem.with_suffix(".pkl"), result)
+        parts = "  ".join(f"{k} {1e3 * np.median(v):.2f}" for k, v in result.timings.items())
+        total = 1e3 * np.median(sum(result.timings.values()))
+        print(f"trajectory {i}: {result.num_steps} steps, ms/step (median) {total:.2f}: {parts}")
+    print(f"wrote {len(indices)} rollouts to {out}")
+    return 1 if diverged else 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from gns.data import open_dataset
+    from gns.data.atomic import write_json_atomic
+    from gns.evaluate import evaluate_rollouts, one_step_errors
+    from gns.rollout import load_rollout
+    from gns.train import load_simulator, resolve_device
+
+    set_threads(args.threads)
+    folder = args.rollouts or args.run / "rollouts" / args.split
+    files = sorted(
+        folder.glob(f"rollout_{args.split}_*.npz"), key=lambda p: int(p.stem.split("_")[-1])
+    )
+    if not files:
+        raise ValueError(f"no rollouts in {folder}; run `gns rollout --run {args.run} ...` first")
+    report = evaluate_rollouts([load_rollout(f) for f in files], distribution_every=args.every)
+    if args.one_step_windows:
+        device = resolve_device(args.device)
+        simulator = load_simulator(args.run, device)
+        dataset = open_dataset(args.data, args.split)
+        one_step = one_step_errors(
+            simulator, list(dataset), max_windows=args.one_step_windows, device=device
+        )
+        for name, value in one_step.items():
+            report["mean"][name]["one_step_mse"] = value
+    report["split"], report["rollouts"] = args.split, [str(f) for f in files]
+    write_json_atomic(args.run / f"eval_{args.split}.json", report)
+    mean = report["mean"]
+    keys = [k for k in mean["model"] if k != "finite"] + ["finite"]
+    print(f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box: worst)")
+    print(f"{'metric':<16} {'model':>14} {'const. velocity':>16} {'ratio':>8}")
+    for key in keys:
+        a, b = mean["model"].get(key, np.nan), mean["constant_velocity"].get(key, np.nan)
+        ratio = b / a if a and np.isfinite(a) and key not in ("finite", "outside_box") else np.nan
+        print(f"{key:<16} {a:>14.4g} {b:>16.4g} {ratio:>8.3g}")
+    print(f"wrote {args.run / f'eval_{args.split}.json'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.run(args) or 0)
+        return int(args.handler(args) or 0)
     except ValueError as err:
         print(f"gns {args.command}: error: {err}", file=sys.stderr)
         return 2

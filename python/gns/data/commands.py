@@ -35,21 +35,21 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     stats.add_argument(
         "--write", action="store_true", help="store the statistics in PATH/metadata.json"
     )
-    stats.set_defaults(run=run_stats)
+    stats.set_defaults(handler=run_stats)
 
     validate = sub.add_parser(
         "validate",
         help="check a dataset against its metadata and print every problem",
     )
     validate.add_argument("path", type=Path)
-    validate.set_defaults(run=run_validate)
+    validate.set_defaults(handler=run_validate)
 
     conv = sub.add_parser("convert", help="rewrite a dataset in another layout (atomically)")
     conv.add_argument("src", type=Path)
     conv.add_argument("dst", type=Path, help="new folder (must not exist, or be empty)")
     conv.add_argument("--to", required=True, choices=TARGETS)
     conv.add_argument("--splits", nargs="*", default=None, help="default: every split present")
-    conv.set_defaults(run=run_convert)
+    conv.set_defaults(handler=run_convert)
 
 
 def _format_statistics(stats: Statistics) -> str:

@@ -1,0 +1,165 @@
+"""Evaluation of a trained run: one-step MSE over a split, and the metrics of its rollouts next
+to the constant-velocity baseline (every particle keeps its last velocity) on the same frames.
+
+    one_step_errors(simulator, dataset)   position MSE of single steps from ground-truth inputs
+    evaluate_rollouts(rollouts)           per-trajectory and mean rollout metrics (MSE over time
+                                          and at horizons, OT, MMD), model and baseline, plus how
+                                          far any particle left the box
+The metrics themselves are gns.metrics; this module only decides what is compared with what.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from gns.data.windows import collate, num_windows, trajectory_windows
+from gns.metrics import DEFAULT_HORIZONS, constant_velocity_rollout, evaluate_rollout
+from gns.rollout import Rollout
+from gns.simulator import LearnedSimulator
+
+__all__ = ["evaluate_rollouts", "one_step_errors", "outside_box"]
+
+MODELS = ("model", "constant_velocity")
+
+
+@torch.no_grad()
+def one_step_errors(
+    simulator: LearnedSimulator,
+    trajectories: Sequence[Any],
+    *,
+    max_windows: int | None = None,
+    device: torch.device | str = "cpu",
+) -> dict[str, float]:
+    """Mean one-step position MSE (per particle and axis, non-kinematic particles) of the model
+    and of the constant-velocity baseline over the windows of `trajectories`: all of them, or
+    `max_windows` spread evenly over the split."""
+    from gns.train import batch_tensors
+
+    history = simulator.config.model.velocity_history + 1
+    pairs = [
+        (k, start)
+        for k, trajectory in enumerate(trajectories)
+        for start in range(num_windows(trajectory.num_frames, history))
+    ]
+    if not pairs:
+        raise ValueError(f"no trajectory has more than {history} frames: nothing to evaluate")
+    if max_windows is not None and max_windows < len(pairs):
+        pairs = [pairs[i] for i in np.linspace(0, len(pairs) - 1, max_windows).round().astype(int)]
+    was_training = simulator.training
+    simulator.eval()
+    device = torch.device(device)
+    sums = {name: 0.0 for name in MODELS}
+    try:
+        for k, start in pairs:
+            window = next(trajectory_windows(trajectories[k], history, [start]))
+            t = batch_tensors(collate([window]), device)
+            sequence, truth = t["position_sequence"], t["next_position"]
+            assert sequence is not None and truth is not None and t["particle_type"] is not None
+            predicted = simulator.predict_positions(
+                sequence, t["particle_type"], t["n_node"], t["context"], t["material_property"]
+            )
+            baseline = 2 * sequence[:, -1] - sequence[:, -2]
+            free = ~simulator.kinematic_mask(t["particle_type"])
+            for name, guess in (("model", predicted), ("constant_velocity", baseline)):
+                error = (guess.double() - truth.double())[free].square().mean()
+                sums[name] += float(error)
+    finally:
+        simulator.train(was_training)
+    return {name: total / len(pairs) for name, total in sums.items()}
+
+
+def outside_box(positions: np.ndarray, bounds: Sequence[Sequence[float]]) -> float:
+    """How far (in position units) the farthest particle of (T, N, D) is outside the box;
+    0 when every particle stays inside."""
+    box = np.asarray(bounds, dtype=np.float64)
+    below = box[:, 0] - positions
+    above = positions - box[:, 1]
+    return float(max(0.0, below.max(), above.max()))
+
+
+def evaluate_rollouts(
+    rollouts: Sequence[Rollout],
+    *,
+    horizons: Sequence[int | None] = DEFAULT_HORIZONS,
+    distribution_every: int = 1,
+    bandwidth: float = 0.1,
+) -> dict[str, Any]:
+    """Rollout metrics of the model and of the constant-velocity baseline.
+
+    Each rollout needs its ground truth. Kinematic particles (metadata's
+    kinematic_particle_types) are held to the ground truth in both and left out of every
+    metric. Returns {"trajectories": [per-rollout dicts], "mean": {model: {metric: value}}}
+    where a per-rollout dict holds, per model, the scalar metrics ("mse@h", "mse@full",
+    "ot_mean", "mmd_mean", "outside_box", "finite") and the per-frame "mse" curve.
+    """
+    if not rollouts:
+        raise ValueError("no rollouts to evaluate")
+    per_rollout = [_evaluate_one(r, horizons, distribution_every, bandwidth) for r in rollouts]
+    mean: dict[str, dict[str, float]] = {}
+    for name in MODELS:
+        entries = [entry[name] for entry in per_rollout if entry[name] is not None]
+        keys = sorted({key for e in entries for key in e if key != "mse"})
+        mean[name] = {}
+        for key in keys:
+            # A diverged model rollout lacks the later horizons: they count as infinitely wrong.
+            values = [e.get(key, np.inf) for e in entries]
+            # The worst case, not the mean, is what "inside the box" must mean.
+            mean[name][key] = float(np.max(values) if key == "outside_box" else np.mean(values))
+    return {"trajectories": per_rollout, "mean": mean}
+
+
+def _evaluate_one(
+    r: Rollout, horizons: Sequence[int | None], distribution_every: int, bandwidth: float
+) -> dict[str, Any]:
+    """Model and baseline figures of one rollout (see evaluate_rollouts)."""
+    if r.ground_truth_rollout is None:
+        raise ValueError(
+            f"rollout of trajectory {r.metadata.get('trajectory')} has no ground truth"
+        )
+    diverged_at = r.metadata.get("diverged_at_step")
+    entry: dict[str, Any] = {"trajectory": r.metadata.get("trajectory")}
+    if diverged_at is not None:
+        entry["diverged_at_step"] = int(diverged_at)
+    if r.num_steps == 0:  # diverged at its first step: nothing to compare, all infinitely wrong
+        entry["model"] = dict.fromkeys(("mse@full", "ot_mean", "mmd_mean"), np.inf)
+        entry["model"]["finite"] = 0.0
+        entry["constant_velocity"] = None
+        return entry
+    kinematic = np.isin(r.particle_type, r.metadata.get("kinematic_particle_types", [3]))
+    baseline = constant_velocity_rollout(
+        r.initial_positions,
+        r.num_steps,
+        kinematic_mask=kinematic,
+        ground_truth=r.ground_truth_rollout,
+    )
+    for name, predicted in (("model", r.predicted_rollout), ("constant_velocity", baseline)):
+        metrics = evaluate_rollout(
+            predicted,
+            r.ground_truth_rollout,
+            mask=~kinematic,
+            horizons=horizons,
+            distribution_every=distribution_every,
+            bandwidth=bandwidth,
+            nonfinite="inf",
+        )
+        scalars = {
+            key: float(value)
+            for key, value in metrics.items()
+            if key.startswith("mse@") or key in ("ot_mean", "mmd_mean")
+        }
+        finite = bool(np.isfinite(predicted).all())
+        if name == "model" and diverged_at is not None:
+            # The rollout stopped early: what lies beyond its last finite frame counts as
+            # infinitely wrong, not as absent.
+            finite = False
+            scalars.update(dict.fromkeys(("mse@full", "ot_mean", "mmd_mean"), np.inf))
+        scalars["finite"] = float(finite)
+        bounds = r.metadata.get("bounds")
+        if bounds is not None:
+            scalars["outside_box"] = outside_box(predicted, bounds) if finite else np.inf
+        entry[name] = {**scalars, "mse": metrics["mse"].tolist()}
+    return entry

@@ -1,0 +1,136 @@
+"""Evaluation of runs: one-step errors, rollout metrics next to the baseline, and the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from gns.cli import main
+from gns.config import Config, ModelConfig
+from gns.evaluate import evaluate_rollouts, one_step_errors, outside_box
+from gns.rollout import Rollout, load_rollout
+from gns.simulator import LearnedSimulator, Scene
+from test_train import make_dataset
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+TINY = Config(model=ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=2))
+
+
+def zero_acceleration_simulator(context: bool = True) -> LearnedSimulator:
+    """A simulator whose decoder outputs 0 and whose normaliser is fresh (mean 0, std 1): it
+    predicts zero acceleration, i.e. the constant-velocity step."""
+    scene = Scene(dim=2, radius=0.015, particle_types=(3, 5), bounds=((0.1, 0.9),) * 2,
+                  walls=True, context_size=1 if context else 0)  # fmt: skip
+    simulator = LearnedSimulator(scene, TINY)
+    torch.nn.init.zeros_(simulator.model.decoder[-1].weight)
+    torch.nn.init.zeros_(simulator.model.decoder[-1].bias)
+    return simulator
+
+
+def test_one_step_errors_of_a_zero_acceleration_model_equal_the_baseline(tmp_path):
+    from gns.data import open_dataset
+
+    trajectories = list(open_dataset(make_dataset(tmp_path / "data")))
+    errors = one_step_errors(zero_acceleration_simulator(), trajectories)
+    # By hand: each window's constant-velocity guess against its next frame.
+    total, count = 0.0, 0
+    for t in trajectories:
+        x = t.positions.astype(np.float64)
+        free = t.particle_type != 3
+        for start in range(t.num_frames - 6):
+            guess = 2 * x[start + 5] - x[start + 4]
+            total += np.mean(np.square(guess - x[start + 6])[free])
+            count += 1
+    assert errors["constant_velocity"] == pytest.approx(total / count, rel=1e-6)
+    assert errors["model"] == pytest.approx(errors["constant_velocity"], rel=1e-5)
+
+
+def synthetic_rollout(predicted_offset: float = 0.0, diverged_at: int | None = None) -> Rollout:
+    """Particles falling with constant acceleration g; the prediction is the truth + offset."""
+    frames, n = 20, 10
+    rng = np.random.default_rng(0)
+    start = rng.uniform(0.3, 0.7, size=(n, 2))
+    t = np.arange(frames, dtype=np.float64)[:, None, None]
+    g = np.array([0.0, -1e-4])
+    positions = start[None] + 0.5 * g * t**2
+    types = np.full(n, 5)
+    types[-1] = 3
+    truth = positions[6:]
+    predicted = truth + predicted_offset
+    predicted[:, -1] = truth[:, -1]
+    metadata = {"bounds": [[0.1, 0.9]] * 2, "kinematic_particle_types": [3], "trajectory": 0}
+    if diverged_at is not None:
+        predicted, truth = predicted[:diverged_at], truth[:diverged_at]
+        metadata["diverged_at_step"] = diverged_at
+    return Rollout(positions[:6], predicted, truth, types, metadata=metadata)
+
+
+def test_rollout_metrics_of_a_perfect_model_and_the_baseline_by_hand():
+    report = evaluate_rollouts([synthetic_rollout()], horizons=(1, 5, None))
+    model, baseline = report["mean"]["model"], report["mean"]["constant_velocity"]
+    assert model["mse@full"] == 0.0 and model["ot_mean"] == pytest.approx(0.0, abs=1e-18)
+    assert model["mmd_mean"] == pytest.approx(0.0, abs=1e-12) and model["finite"] == 1.0
+    # Constant velocity after k steps, by hand: x_t = x_0 + g t^2 / 2, the last history
+    # velocity is x_5 - x_4 = 4.5 g, so x_{5+k} - (x_5 + 4.5 g k) = g (k^2 + k) / 2.
+    k = np.arange(1, 15, dtype=np.float64)
+    miss = (1e-4 * (k * k + k) / 2) ** 2 / 2  # squared miss on one axis of two
+    assert baseline["mse@full"] == pytest.approx(miss.mean(), rel=1e-9)
+    assert baseline["mse@1"] == pytest.approx(miss[0], rel=1e-9)
+    assert baseline["mse@5"] == pytest.approx(miss[:5].mean(), rel=1e-9)
+    # A rigid shift of every free particle: W2^2 is the squared shift, like the MSE.
+    shifted = evaluate_rollouts([synthetic_rollout(predicted_offset=0.01)])["mean"]["model"]
+    assert shifted["mse@full"] == pytest.approx(1e-4, rel=1e-9)
+    # W2^2 is in squared distance (summed over axes): the shift's squared length, 2e-4.
+    assert shifted["ot_mean"] == pytest.approx(2e-4, rel=1e-6)
+
+
+def test_a_diverged_rollout_is_infinitely_wrong_not_missing():
+    good, bad = synthetic_rollout(), synthetic_rollout(diverged_at=3)
+    report = evaluate_rollouts([good, bad], horizons=(1, 5, None))
+    model = report["mean"]["model"]
+    assert model["mse@1"] == 0.0  # both got one step right
+    assert model["mse@5"] == np.inf and model["mse@full"] == np.inf
+    assert model["finite"] == 0.5
+    assert report["trajectories"][1]["diverged_at_step"] == 3
+    first = evaluate_rollouts([synthetic_rollout(diverged_at=0), good])
+    assert first["mean"]["model"]["mse@full"] == np.inf
+    assert np.isfinite(first["mean"]["constant_velocity"]["mse@full"])
+
+
+def test_outside_box_by_hand():
+    positions = np.array([[[0.5, 0.5], [0.95, 0.2]], [[0.05, 0.5], [0.5, 0.5]]])
+    assert outside_box(positions, [[0.1, 0.9], [0.1, 0.9]]) == pytest.approx(0.05)
+    assert outside_box(positions[:, :1][:1], [[0.1, 0.9], [0.1, 0.9]]) == 0.0
+
+
+def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
+    data = make_dataset(tmp_path / "data", frames=14)
+    (data / "valid.h5").rename(data / "test.h5")
+    config = tmp_path / "tiny.toml"
+    config.write_text(
+        "[model]\nlatent_size = 8\nmlp_hidden_size = 8\nmessage_passing_steps = 2\n"
+        "[train]\nsteps = 4\nlog_every = 2\nvalidate_every = 0\ncheckpoint_every = 2\n"
+    )
+    run = tmp_path / "run"
+    assert main(["train", "--data", str(data), "--out", str(run), "--config", str(config),
+                 "--quiet", "--threads", "1"]) == 0  # fmt: skip
+    assert main(["rollout", "--run", str(run), "--data", str(data), "--deepmind"]) == 0
+    printed = capsys.readouterr().out
+    assert "ms/step" in printed and "graph" in printed and "model" in printed
+    saved = load_rollout(run / "rollouts/test/rollout_test_1.npz")
+    assert saved.num_steps == 14 - 6 and (run / "rollouts/test/rollout_test_1.pkl").exists()
+    assert main(["eval", "--run", str(run), "--data", str(data), "--every", "4"]) == 0
+    report = json.loads((run / "eval_test.json").read_text())
+    assert len(report["trajectories"]) == 2
+    for name in ("model", "constant_velocity"):
+        assert {"mse@1", "mse@5", "mse@full", "ot_mean", "mmd_mean", "one_step_mse"} <= set(
+            report["mean"][name]
+        )
+    table = capsys.readouterr().out
+    assert "const. velocity" in table and "one_step_mse" in table
+    # Bad input is an error message and exit status 2, not a traceback.
+    assert main(["eval", "--run", str(tmp_path / "nowhere"), "--data", str(data)]) == 2
+    assert "no rollouts" in capsys.readouterr().err
