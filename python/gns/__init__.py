@@ -23,6 +23,9 @@ _LAZY = {
     "EncodeProcessDecode": "gns.model",
     "LearnedSimulator": "gns.simulator",
     "Scene": "gns.simulator",
+    "load_simulator": "gns.train",
+    "Rollout": "gns.rollout",
+    "evaluate_rollouts": "gns.evaluate",
 }
 
 __all__ = [
@@ -32,9 +35,12 @@ __all__ = [
     "LearnedSimulator",
     "Obstacle",
     "RadiusSearcher",
+    "Rollout",
     "Scene",
     "euler_step",
+    "evaluate_rollouts",
     "load_config",
+    "load_simulator",
     "obstacle_features",
     "radius_graph",
     "wall_features",
