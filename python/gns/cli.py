@@ -164,6 +164,8 @@ def run_eval(args: argparse.Namespace) -> int:
         a, b = mean["model"].get(key, np.nan), mean["constant_velocity"].get(key, np.nan)
         ratio = b / a if a and np.isfinite(a) and key not in ("finite", "outside_box") else np.nan
         print(f"{key:<16} {a:>14.4g} {b:>16.4g} {ratio:>8.3g}")
+    if "ground_truth" in mean:
+        print(f"(the ground truth itself: outside_box {mean['ground_truth']['outside_box']:.4g})")
     print(f"wrote {args.run / f'eval_{args.split}.json'}")
     return 0
 
