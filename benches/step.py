@@ -1,6 +1,7 @@
 """Time per rollout step and per training step of the GNS, and the model's FLOP/s.
 
     python benches/step.py [--quick] [--threads N] [--device cpu|cuda] [--sizes N ...]
+                           [--variants plain fast bf16 compiled | all]
 
 Model: the paper's GNS-10-128 (the default Config(): 10 message-passing steps, latent and MLP
 width 128, 2 hidden layers), running normalisation primed with the case's own window.
@@ -19,10 +20,19 @@ Training step: one window (one graph) through gns.train.TrainingStep: noise, for
 Adam. Times are median (min) after warm-up, perf_counter, CUDA synchronised.
 FLOPs: counted from the Linear layers (forward_flops); forward FLOP/s is per rollout "model"
 time, training FLOP/s counts 3x forward per whole training step. "% mm" compares them with an
-fp32 (S x S) @ (S x S) matmul timed on the same device and threads in the same run.
+(S x S) @ (S x S) matmul in the row's precision timed on the same device and threads in the
+same run (emulated bf16 at S <= 1024); faster variants do fewer FLOPs for the same work, so
+their "% mm" can pass 100%.
 
-Variants (rows per case) are named builders of a LearnedSimulator plus a context to run it in,
-so faster implementations of the same function (e.g. bf16) can be added to VARIANTS.
+Variants (rows per case; --variants picks them by key) are the same function and parameters run
+differently (gns.config.ModelConfig.implementation / precision / torch_compile):
+- plain    "plain fp32": the readable reference (gather, concatenate, MLP, index_add_).
+- fast     "fast fp32": split first edge layer, blocked edge MLP without autograd.
+- bf16     "fast bf16": the fast path under bf16 autocast; run by default only where bf16 is
+           native (CUDA, AVX512-BF16 / AMX CPUs): elsewhere it is emulated and ~20x slower.
+- compiled "fast fp32 compiled": torch.compile of the fast path; not by default, as every case
+           compiles afresh (tens of seconds; the first calls' time is printed below the table).
+"x plain" is the plain row's median time over this row's (> 1: faster).
 """
 
 from __future__ import annotations
@@ -33,8 +43,9 @@ import platform
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -53,6 +64,12 @@ def parse_args() -> argparse.Namespace:
     )
     p.add_argument("--sand", default=str(SAND), help="sand2d-taichi folder ('' to skip)")
     p.add_argument("--reps", type=int, help="measured repeats (default 5, quick 2)")
+    p.add_argument(
+        "--variants",
+        nargs="*",
+        choices=["plain", "fast", "bf16", "compiled", "all"],
+        help="rows per case (default: plain fast, and bf16 where it is native)",
+    )
     args = p.parse_args()
     if args.sizes is None:
         args.sizes = [300, 1100] if args.quick else [1100, 10_000]
@@ -71,7 +88,7 @@ import torch  # noqa: E402
 from gns.config import Config  # noqa: E402
 from gns.data import Trajectory, open_dataset  # noqa: E402
 from gns.data.windows import collate, trajectory_windows  # noqa: E402
-from gns.model import EncodeProcessDecode  # noqa: E402
+from gns.model import EncodeProcessDecode, native_bf16  # noqa: E402
 from gns.rollout import TIMING_PARTS, rollout  # noqa: E402
 from gns.simulator import LearnedSimulator, Scene  # noqa: E402
 from gns.train import TrainingStep, batch_tensors, resolve_device  # noqa: E402
@@ -82,14 +99,39 @@ from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 @dataclass(frozen=True)
 class Variant:
     """One implementation of the GNS: build(scene, config) -> simulator; `context` wraps every
-    timed call (e.g. torch.autocast for a bf16 variant)."""
+    timed call; `precision` names the matmul rate it is compared with."""
 
+    key: str
     name: str
     build: Callable[[Scene, Config], LearnedSimulator]
     context: Callable[[], AbstractContextManager[object]] = nullcontext
+    precision: str = "fp32"
 
 
-VARIANTS = [Variant("plain fp32", lambda scene, config: LearnedSimulator(scene, config))]
+def model_settings(**changes: Any) -> Callable[[Scene, Config], LearnedSimulator]:
+    """A builder of the default simulator with these ModelConfig settings."""
+
+    def build(scene: Scene, config: Config) -> LearnedSimulator:
+        return LearnedSimulator(scene, replace(config, model=replace(config.model, **changes)))
+
+    return build
+
+
+VARIANTS = [
+    Variant("plain", "plain fp32", model_settings(implementation="plain", precision="fp32")),
+    Variant("fast", "fast fp32", model_settings(implementation="fast", precision="fp32")),
+    Variant(
+        "bf16",
+        "fast bf16",
+        model_settings(implementation="fast", precision="bf16"),
+        precision="bf16",
+    ),
+    Variant(
+        "compiled",
+        "fast fp32 compiled",
+        model_settings(implementation="fast", precision="fp32", torch_compile=True),
+    ),
+]
 
 
 @dataclass(frozen=True)
@@ -161,9 +203,11 @@ def timed(fn: Callable[[], object], warmup: int, reps: int, device: torch.device
     return np.array(seconds)
 
 
-def matmul_flops_per_second(size: int, device: torch.device, warmup: int, reps: int) -> float:
-    """fp32 (size x size) @ (size x size) throughput, the machine's yardstick."""
-    a, b = (torch.randn(size, size, device=device) for _ in range(2))
+def matmul_flops_per_second(
+    size: int, device: torch.device, warmup: int, reps: int, dtype: torch.dtype = torch.float32
+) -> float:
+    """(size x size) @ (size x size) throughput in `dtype`, the machine's yardstick."""
+    a, b = (torch.randn(size, size, device=device, dtype=dtype) for _ in range(2))
     seconds = timed(lambda: a @ b, warmup, reps, device)
     return 2 * size**3 / float(np.median(seconds))
 
@@ -186,7 +230,11 @@ def measure(case: Case, variant: Variant, config: Config, device: torch.device) 
 
     # Rollout: the per-step split of gns.rollout, pooled over all measured steps.
     with variant.context():
-        rollout(simulator, case.trajectory, num_steps=ARGS.warmup)
+        t0 = time.perf_counter()
+        rollout(simulator, case.trajectory, num_steps=1)  # compiles, for a compiled variant
+        first_rollout = time.perf_counter() - t0
+        if ARGS.warmup > 1:
+            rollout(simulator, case.trajectory, num_steps=ARGS.warmup - 1)
         runs = [rollout(simulator, case.trajectory, num_steps=ARGS.steps) for _ in range(ARGS.reps)]
     parts = {p: np.concatenate([r.timings[p] for r in runs]) for p in TIMING_PARTS}
     per_step = sum(parts.values())
@@ -206,15 +254,21 @@ def measure(case: Case, variant: Variant, config: Config, device: torch.device) 
         optimizer.step()
         return float(loss.detach())
 
-    train = timed(train_step, ARGS.warmup, ARGS.reps, device)
+    t0 = time.perf_counter()
+    train_step()
+    synchronize(device)
+    first_train = time.perf_counter() - t0
+    train = timed(train_step, ARGS.warmup - 1, ARGS.reps, device)
 
-    # FLOPs of the reference model on this case's graph; counted by torch as a cross-check.
+    # FLOPs of the plain model on this case's graph (the useful work, whatever the variant);
+    # counted by torch as a cross-check.
     simulator.eval()
     with torch.inference_mode():
         f = simulator.features(sequence, types, t["n_node"], t["context"], t["material_property"])
         n, e = sequence.shape[0], f["senders"].shape[0]  # type: ignore[union-attr]
+        plain = replace(config.model, implementation="plain", precision="fp32", torch_compile=False)
         reference = EncodeProcessDecode(
-            simulator.node_input_size, simulator.edge_input_size, 2, config.model
+            simulator.node_input_size, simulator.edge_input_size, 2, plain
         ).to(device)
         flops = forward_flops(reference, n, e)
         with FlopCounterMode(display=False) as counter:
@@ -227,13 +281,16 @@ def measure(case: Case, variant: Variant, config: Config, device: torch.device) 
         "train": train,
         "flops": flops,
         "torch_flops": counter.get_total_flops(),
+        "first_rollout": first_rollout,
+        "first_train": first_train,
     }
 
 
 COLUMNS = [  # (title, width); the first two are left-aligned
-    *[("case", 15), ("variant", 11), ("N", 6), ("E", 7), ("E/N", 5)],
-    *[("rollout ms", 17), ("graph", 6), ("feat", 6), ("model", 8), ("integ", 6), ("graph%", 6)],
-    *[("train ms", 17), ("GFLOP", 6), ("fwd GF/s", 8), ("% mm", 5), ("trn GF/s", 8), ("% mm", 5)],
+    *[("case", 15), ("variant", 18), ("N", 6), ("E", 7), ("E/N", 5)],
+    *[("rollout ms", 17), ("x plain", 7), ("graph", 6), ("feat", 6), ("model", 8)],
+    *[("integ", 6), ("graph%", 6), ("train ms", 17), ("x plain", 7)],
+    *[("GFLOP", 6), ("fwd GF/s", 8), ("% mm", 5), ("trn GF/s", 8), ("% mm", 5)],
 ]
 
 
@@ -244,19 +301,28 @@ def line(texts: list[str]) -> str:
     return " ".join(t.ljust(w) if i < 2 else t.rjust(w) for i, (t, w) in pairs)
 
 
-def cells(case: Case, variant: Variant, r: dict, peak: float) -> list[str]:
-    """The table row of one measurement; peak: the matmul FLOP/s."""
+def cells(case: Case, variant: Variant, r: dict, peak: float, plain: dict | None) -> list[str]:
+    """The table row of one measurement; peak: the matmul FLOP/s in the variant's precision;
+    plain: the plain row's measurement of the same case, for the "x plain" ratios."""
     ms = {p: 1e3 * r[p] for p in TIMING_PARTS}
     roll, train = 1e3 * r["rollout"], 1e3 * r["train"]
+
+    def ratio(part: str) -> str:
+        if plain is None:
+            return "-"
+        return f"{float(np.median(plain[part]) / np.median(r[part])):.2f}"
+
     forward = r["flops"] / r["model"]  # the model part of a rollout step
     training = 3 * r["flops"] / float(np.median(r["train"]))  # the whole training step
     return [
         *[case.name, variant.name, str(r["n"]), str(r["e"]), f"{r['e'] / r['n']:.1f}"],
         f"{np.median(roll):.1f} ({roll.min():.1f})",
+        ratio("rollout"),
         *[f"{ms['graph']:.2f}", f"{ms['features']:.2f}", f"{ms['model']:.1f}"],
         f"{ms['integration']:.2f}",
         f"{100 * ms['graph'] / np.median(roll):.1f}%",
         f"{np.median(train):.1f} ({train.min():.1f})",
+        ratio("train"),
         f"{r['flops'] / 1e9:.2f}",
         *[f"{forward / 1e9:.1f}", f"{100 * forward / peak:.0f}%"],
         *[f"{training / 1e9:.1f}", f"{100 * training / peak:.0f}%"],
@@ -291,9 +357,19 @@ def main() -> None:
         raise SystemExit(f"step.py: {err}") from None
     config = Config()
     print("\n".join(machine_facts(device)))
+    keys = ARGS.variants or ["plain", "fast"] + (["bf16"] if native_bf16(device) else [])
+    keys = [v.key for v in VARIANTS] if "all" in keys else keys
+    variants = [v for v in VARIANTS if v.key in keys]
+    if "bf16" not in keys:
+        print(f"fast bf16: not run (bf16 is not native on {device}; --variants bf16 forces it)")
     s = ARGS.matmul
-    peak = matmul_flops_per_second(s, device, ARGS.warmup, ARGS.reps)
-    print(f"fp32 matmul ({s} x {s}) @ ({s} x {s}): {peak / 1e9:.1f} GFLOP/s")
+    peaks = {"fp32": matmul_flops_per_second(s, device, ARGS.warmup, ARGS.reps)}
+    print(f"fp32 matmul ({s} x {s}) @ ({s} x {s}): {peaks['fp32'] / 1e9:.1f} GFLOP/s")
+    if "bf16" in keys:
+        # Emulated bf16 is ~20x slower than fp32: a smaller yardstick keeps this short.
+        s = s if native_bf16(device) else min(s, 1024)
+        peaks["bf16"] = matmul_flops_per_second(s, device, 1, ARGS.reps, torch.bfloat16)
+        print(f"bf16 matmul ({s} x {s}) @ ({s} x {s}): {peaks['bf16'] / 1e9:.1f} GFLOP/s")
     m = config.model
     print(
         f"model: GNS-{m.message_passing_steps}-{m.latent_size}; rollout: {ARGS.reps} x "
@@ -309,9 +385,17 @@ def main() -> None:
     print("-" * len(line([""] * len(COLUMNS))))
     notes = []
     for case in cases:
-        for variant in VARIANTS:
+        plain = None
+        for variant in variants:
             r = measure(case, variant, config, device)
-            print(line(cells(case, variant, r, peak)), flush=True)
+            plain = r if variant.key == "plain" else plain
+            print(line(cells(case, variant, r, peaks[variant.precision], plain)), flush=True)
+            if variant.key == "compiled":
+                notes.append(
+                    f"{case.name}, {variant.name}: first 1-step rollout "
+                    f"{r['first_rollout']:.1f} s, first training step {r['first_train']:.1f} s "
+                    "(compilation)"
+                )
             if abs(r["torch_flops"] - r["flops"]) > 0.1 * r["flops"]:
                 notes.append(
                     f"{case.name}: FlopCounterMode counts {r['torch_flops'] / 1e9:.2f} GFLOP, "

@@ -25,6 +25,25 @@ def test_step_benchmark_quick_prints_its_table(tmp_path):
     for title in ("rollout ms", "graph", "feat", "model", "integ", "graph%", "train ms", "% mm"):
         assert title in header
     assert f"not found at {missing}: skipped" in out
-    (row,) = [line for line in out.splitlines() if line.startswith("120 particles")]
-    assert "plain fp32" in row and len(row.split()) >= 17
-    assert "FlopCounterMode" in out
+    plain, fast = [line for line in out.splitlines() if line.startswith("120 particles")]
+    assert "plain fp32" in plain and len(plain.split()) >= 19
+    assert "fast fp32" in fast and len(fast.split()) >= 19
+    assert header.count("x plain") == 2
+    assert "FlopCounterMode agrees" in out  # the plain model's FLOPs for every row
+    if "fast bf16: not run" not in out:  # a machine with native bf16
+        assert "bf16 matmul" in out
+
+
+def test_step_benchmark_runs_the_bf16_variant_on_request(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(BENCH), "--quick", "--threads", "1", "--reps", "1"]
+        + ["--sizes", "40", "--sand", "", "--variants", "fast", "bf16"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("40 particles")]
+    assert [r.split()[2:4] for r in rows] == [["fast", "fp32"], ["fast", "bf16"]]
+    assert all(r.split()[9] == "-" for r in rows)  # no plain row, no ratio
+    assert "bf16 matmul" in result.stdout

@@ -45,6 +45,8 @@ __all__ = [
 NOISE_TYPES = ("random_walk", "only_last", "correlated", "uncorrelated")
 NoiseType = Literal["random_walk", "only_last", "correlated", "uncorrelated"]
 NormalizationSource = Literal["running", "metadata"]
+Implementation = Literal["fast", "plain"]
+Precision = Literal["auto", "fp32", "bf16"]
 
 
 def _positive(owner: object, *names: str) -> None:
@@ -66,6 +68,15 @@ class ModelConfig:
     edge_latent_updates: False keeps the encoded edge latents fixed through the processor.
     add_gravity: add the scene's gravity to the decoded acceleration, so the network predicts
         only the deviation from free fall.
+
+    How the network runs; none of these changes its parameters (checkpoints load either way):
+    implementation: "fast" (split first edge layer, see gns.model.InteractionNetwork) or
+        "plain", the readable reference; the same function up to float round-off.
+    precision: "bf16" runs the network under bfloat16 autocast (losses, statistics and the
+        integration stay float32); "auto" picks bf16 only where it is native (CUDA with bf16,
+        CPUs with AVX512-BF16 or AMX), "fp32" never.
+    torch_compile: torch.compile the fast path (dynamic shapes); opt-in because compiling takes
+        tens of seconds, and it falls back to eager with a warning where it cannot compile.
     """
 
     latent_size: int = 128
@@ -80,6 +91,9 @@ class ModelConfig:
     add_gravity: bool = False
     particle_type_embedding_size: int = 16
     velocity_history: int = 5
+    implementation: Implementation = "fast"
+    precision: Precision = "auto"
+    torch_compile: bool = False
 
     def __post_init__(self) -> None:
         _positive(
@@ -93,6 +107,14 @@ class ModelConfig:
         if self.mlp_hidden_layers < 0:
             raise ValueError(
                 f"ModelConfig.mlp_hidden_layers must be >= 0, got {self.mlp_hidden_layers}"
+            )
+        if self.implementation not in ("fast", "plain"):
+            raise ValueError(
+                f"ModelConfig.implementation must be 'fast' or 'plain', got {self.implementation!r}"
+            )
+        if self.precision not in ("auto", "fp32", "bf16"):
+            raise ValueError(
+                f"ModelConfig.precision must be 'auto', 'fp32' or 'bf16', got {self.precision!r}"
             )
 
 
