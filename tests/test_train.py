@@ -174,9 +174,11 @@ def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets(tmp_
     acceleration = t["next_position"].double() - 2 * position[:, -1] + position[:, -2]
     normalizer = simulator.acceleration_normalizer
     target = (acceleration - normalizer.mean) / normalizer.std
-    predicted = simulator(
-        t["position_sequence"], t["particle_type"], t["n_node"], t["context"]
-    ).detach().double()
+    predicted = (
+        simulator(t["position_sequence"], t["particle_type"], t["n_node"], t["context"])
+        .detach()
+        .double()
+    )
     expected = (predicted - target).square().sum(-1)[torch.from_numpy(free)].sum()
     assert float(squared_sum) == pytest.approx(float(expected), rel=1e-5)
     # Moving the kinematic particles' next positions changes nothing.
