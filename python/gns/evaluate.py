@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from gns.data.windows import collate, num_windows, trajectory_windows
+from gns.data.windows import collate, trajectory_windows, window_keys
 from gns.metrics import DEFAULT_HORIZONS, constant_velocity_rollout, evaluate_rollout
 from gns.rollout import Rollout
 from gns.simulator import LearnedSimulator
@@ -40,11 +40,7 @@ def one_step_errors(
     from gns.train import batch_tensors
 
     history = simulator.config.model.velocity_history + 1
-    pairs = [
-        (k, start)
-        for k, trajectory in enumerate(trajectories)
-        for start in range(num_windows(trajectory.num_frames, history))
-    ]
+    pairs = window_keys(trajectories, history)
     if not pairs:
         raise ValueError(f"no trajectory has more than {history} frames: nothing to evaluate")
     if max_windows is not None and max_windows < len(pairs):

@@ -39,7 +39,7 @@ from torch import Tensor, nn
 from gns.config import Config, from_dict, to_dict
 from gns.data import open_dataset
 from gns.data.atomic import atomic_file
-from gns.data.windows import Batch, WindowSampler, collate, trajectory_windows
+from gns.data.windows import Batch, WindowSampler, collate, trajectory_windows, window_keys
 from gns.normalization import RunningNormalizer
 from gns.simulator import LearnedSimulator, Scene
 
@@ -327,11 +327,7 @@ def _validation_data(
     except ValueError:
         return [], []
     trajectories = [dataset[i] for i in range(len(dataset))]
-    pairs = [
-        (i, start)
-        for i, trajectory in enumerate(trajectories)
-        for start in range(max(0, trajectory.num_frames - history))
-    ]
+    pairs = window_keys(trajectories, history)
     rng = np.random.default_rng([train_config.seed, 1])
     chosen = rng.permutation(len(pairs))[: train_config.validation_windows]
     windows = [

@@ -57,6 +57,17 @@ def num_windows(num_frames: int, input_sequence_length: int = INPUT_SEQUENCE_LEN
     return max(0, num_frames - input_sequence_length)
 
 
+def window_keys(
+    trajectories: Sequence[Trajectory], input_sequence_length: int = INPUT_SEQUENCE_LENGTH
+) -> list[tuple[int, int]]:
+    """(trajectory index, start) of every window of `trajectories`, in order."""
+    return [
+        (k, start)
+        for k, trajectory in enumerate(trajectories)
+        for start in range(num_windows(trajectory.num_frames, input_sequence_length))
+    ]
+
+
 def trajectory_windows(
     trajectory: Trajectory,
     input_sequence_length: int = INPUT_SEQUENCE_LENGTH,
@@ -285,11 +296,7 @@ class WindowSampler:
         visit = np.random.default_rng([self.seed, self.epoch]).permutation(len(self.trajectories))
         members = visit[self.chunk * per_chunk : (self.chunk + 1) * per_chunk]
         self._chunk = [self.trajectories[int(i)] for i in members]
-        pairs = [
-            (k, start)
-            for k, trajectory in enumerate(self._chunk)
-            for start in range(num_windows(trajectory.num_frames, self.input_sequence_length))
-        ]
+        pairs = window_keys(self._chunk, self.input_sequence_length)
         order = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         rng = np.random.default_rng([self.seed, self.epoch, self.chunk])
         order = order[rng.permutation(len(order))]
