@@ -28,8 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--config", type=Path, help="TOML settings (or a run's config.json)")
     train.add_argument("--steps", type=int, help="override train.steps")
     train.add_argument("--resume", action="store_true", help="continue the run in --out")
-    train.add_argument("--device", default="auto", help="auto (default), cpu, cuda, cuda:1, ...")
-    train.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    add_runtime_options(train)
     train.add_argument("--quiet", action="store_true", help="no progress line")
     train.set_defaults(handler=run_train)
 
@@ -47,8 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     roll.add_argument("--trajectories", type=int, nargs="*", help="indices (default: all)")
     roll.add_argument("--steps", type=int, help="frames to predict (default: all there are)")
     roll.add_argument("--deepmind", action="store_true", help="also write DeepMind pickles")
-    roll.add_argument("--device", default="auto")
-    roll.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    add_runtime_options(roll)
     roll.set_defaults(handler=run_rollout)
 
     ev = sub.add_parser(
@@ -65,10 +63,15 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--rollouts", type=Path, help="default: RUN/rollouts/SPLIT")
     ev.add_argument("--one-step-windows", type=int, default=512, help="0: skip one-step MSE")
     ev.add_argument("--every", type=int, default=1, help="OT and MMD on every k-th frame")
-    ev.add_argument("--device", default="auto")
-    ev.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    add_runtime_options(ev)
     ev.set_defaults(handler=run_eval)
     return parser
+
+
+def add_runtime_options(parser: argparse.ArgumentParser) -> None:
+    """--device and --threads, shared by the commands that run the model."""
+    parser.add_argument("--device", default="auto", help="auto (default), cpu, cuda, cuda:1, ...")
+    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
 
 
 def set_threads(threads: int | None) -> None:

@@ -36,10 +36,10 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
-from gns.config import Config, from_dict, to_dict
+from gns.config import Config, TrainConfig, from_dict, to_dict
 from gns.data import open_dataset
 from gns.data.atomic import atomic_file
-from gns.data.windows import Batch, WindowSampler, collate, trajectory_windows, window_keys
+from gns.data.windows import Batch, WindowSampler
 from gns.normalization import RunningNormalizer
 from gns.simulator import LearnedSimulator, Scene
 
@@ -269,72 +269,50 @@ class Progress:
 # ---------------------------------------------------------------------------------- validation
 
 
-@torch.no_grad()
 def validate(
     simulator: LearnedSimulator,
-    windows: Sequence[Batch],
     trajectories: Sequence[Any],
-    rollout_steps: int,
+    config: TrainConfig,
     device: torch.device,
 ) -> dict[str, float]:
-    """One-step position MSE over fixed windows and mean rollout MSE over a few trajectories,
-    both over non-kinematic particles, with the model in eval mode (no noise, no statistics)."""
-    was_training = simulator.training
-    simulator.eval()
-    figures: dict[str, float] = {}
-    try:
-        if windows:
-            errors = []
-            for batch in windows:
-                t = batch_tensors(batch, device)
-                predicted = simulator.predict_positions(
-                    t["position_sequence"],  # type: ignore[arg-type]
-                    t["particle_type"],  # type: ignore[arg-type]
-                    t["n_node"],
-                    t["context"],
-                    t["material_property"],
-                )
-                free = ~simulator.kinematic_mask(t["particle_type"])  # type: ignore[arg-type]
-                error = (predicted - t["next_position"]).square().sum(-1)  # type: ignore[operator]
-                errors.append(error[free].mean() / simulator.scene.dim)
-            figures["one_step_mse"] = float(torch.stack(errors).mean())
-        if trajectories and rollout_steps:
-            from gns.rollout import rollout
+    """One-step position MSE over config.validation_windows windows of `trajectories` and mean
+    rollout MSE (config.validation_rollout_steps steps) over the first
+    config.validation_rollouts of them, both over non-kinematic particles, in eval mode (no
+    noise, no statistics)."""
+    from gns.evaluate import one_step_errors
+    from gns.metrics import mse_over_time
+    from gns.rollout import rollout
 
-            errors = []
-            history = simulator.config.model.velocity_history + 1
-            for trajectory in trajectories:
-                steps = min(rollout_steps, trajectory.num_frames - history)
-                result = rollout(simulator, trajectory, num_steps=steps, device=device)
-                free = ~simulator.kinematic_mask(torch.from_numpy(trajectory.particle_type))
-                difference = result.predicted_rollout - result.ground_truth_rollout
-                errors.append(float(np.mean(np.square(difference[:, free.numpy()]))))
-            figures["rollout_mse"] = float(np.mean(errors))
-    finally:
-        simulator.train(was_training)
+    figures: dict[str, float] = {}
+    if trajectories and config.validation_windows:
+        errors = one_step_errors(
+            simulator, trajectories, max_windows=config.validation_windows, device=device
+        )
+        figures["one_step_mse"] = errors["model"]
+    history = simulator.config.model.velocity_history + 1
+    rollout_errors = []
+    for trajectory in trajectories[: config.validation_rollouts]:
+        steps = min(config.validation_rollout_steps, trajectory.num_frames - history)
+        if steps < 1:
+            continue
+        result = rollout(simulator, trajectory, num_steps=steps, device=device)
+        free = ~simulator.kinematic_mask(torch.from_numpy(trajectory.particle_type)).numpy()
+        per_frame = mse_over_time(result.predicted_rollout, result.ground_truth_rollout, free)
+        rollout_errors.append(float(per_frame.mean()))
+    if rollout_errors:
+        figures["rollout_mse"] = float(np.mean(rollout_errors))
     return figures
 
 
-def _validation_data(
-    path: str | os.PathLike[str], config: Config, history: int
-) -> tuple[list[Batch], list[Any]]:
-    """Fixed validation windows (one per batch) and trajectories from the valid split."""
-    train_config = config.train
-    if not train_config.validate_every:
-        return [], []
+def _validation_trajectories(path: str | os.PathLike[str], config: TrainConfig) -> list[Any]:
+    """The valid split's trajectories (none without validation or without a valid split)."""
+    if not config.validate_every:
+        return []
     try:
         dataset = open_dataset(path, "valid")
     except ValueError:
-        return [], []
-    trajectories = [dataset[i] for i in range(len(dataset))]
-    pairs = window_keys(trajectories, history)
-    rng = np.random.default_rng([train_config.seed, 1])
-    chosen = rng.permutation(len(pairs))[: train_config.validation_windows]
-    windows = [
-        collate(list(trajectory_windows(trajectories[pairs[k][0]], history, [pairs[k][1]])))
-        for k in sorted(chosen)
-    ]
-    return windows, trajectories[: train_config.validation_rollouts]
+        return []
+    return list(dataset)
 
 
 # ---------------------------------------------------------------------------------- the loop
@@ -461,9 +439,7 @@ def train(
         with atomic_file(run_dir / "config.json") as tmp:
             tmp.write_text(json.dumps(to_dict(config), indent=1) + "\n")
     log = RunLog(run_dir, start if checkpoint is not None else None) if leader else None
-    valid_windows, valid_trajectories = (
-        _validation_data(data, config, history) if leader else ([], [])
-    )
+    valid_trajectories = _validation_trajectories(data, tc) if leader else []
     meter = Progress(tc.steps, start, enabled=progress and leader)
 
     def checkpoint_state(step: int) -> dict[str, Any]:
@@ -549,13 +525,7 @@ def train(
                 meter.show(done, float(mean), force=True)
                 losses = []
             if log is not None and tc.validate_every and done % tc.validate_every == 0:
-                figures = validate(
-                    simulator,
-                    valid_windows,
-                    valid_trajectories,
-                    tc.validation_rollout_steps,
-                    device,
-                )
+                figures = validate(simulator, valid_trajectories, tc, device)
                 if figures:
                     log.write("valid", done, figures)
             if done % tc.checkpoint_every == 0 or done == tc.steps:
