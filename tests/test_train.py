@@ -14,16 +14,18 @@ import pytest
 import torch
 from data_helpers import metadata_dict, write_metadata
 from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
-from gns.data import Trajectory
+from gns.data import Trajectory, open_dataset
 from gns.data.h5 import write_h5
 from gns.data.windows import WindowSampler
 from gns.train import (
     TrainingStep,
     batch_tensors,
+    choose_checkpoint,
     latest_checkpoint,
     load_checkpoint,
     load_simulator,
     train,
+    validate,
 )
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -193,16 +195,28 @@ def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets(tmp_
 
 def test_training_reduces_the_loss_and_validates(tmp_path):
     data = make_dataset(tmp_path / "data", trajectories=4, frames=30)
-    settings = dict(log_every=20, validate_every=40, validation_windows=8, checkpoint_every=80)
+    settings = dict(log_every=20, validate_every=20, validation_windows=8, checkpoint_every=80)
     settings.update(validation_rollouts=1, validation_rollout_steps=5, learning_rate=3e-3)
     cfg = Config(model=TINY, noise=NoiseConfig(std=0.0), train=config(80, **settings).train)
     train(data, tmp_path / "run", cfg, progress=False)
     losses = [float(r["loss"]) for r in read_csv(tmp_path / "run/train.csv")]
     assert losses[-1] < 0.7 * losses[0]
     valid = read_csv(tmp_path / "run/valid.csv")
-    assert [int(r["step"]) for r in valid] == [40, 80]
+    assert [int(r["step"]) for r in valid] == [20, 40, 60, 80]
     for row in valid:
         assert np.isfinite(float(row["one_step_mse"])) and np.isfinite(float(row["rollout_mse"]))
+        assert 0.0 <= float(row["rollout_outside_box"]) < 0.1
+    # best.pt holds the weights of the validation with the lowest rollout MSE: validating them
+    # again reproduces that row, and a run folder loads them unless latest is asked for.
+    errors = [float(r["rollout_mse"]) for r in valid]
+    best_row = valid[int(np.argmin(errors))]
+    best = load_checkpoint(tmp_path / "run/checkpoints/best.pt")
+    assert best["step"] == int(best_row["step"])
+    assert choose_checkpoint(tmp_path / "run") == tmp_path / "run/checkpoints/best.pt"
+    assert choose_checkpoint(tmp_path / "run", "latest").name == "step_000000080.pt"
+    trajectories = list(open_dataset(data, "valid"))
+    again = validate(load_simulator(tmp_path / "run"), trajectories, cfg.train, torch.device("cpu"))
+    assert again["rollout_mse"] == pytest.approx(float(best_row["rollout_mse"]), rel=1e-5)
     # TensorBoard's own reader sees the same figures.
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 

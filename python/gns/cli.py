@@ -46,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     roll.add_argument("--trajectories", type=int, nargs="*", help="indices (default: all)")
     roll.add_argument("--steps", type=int, help="frames to predict (default: all there are)")
     roll.add_argument("--deepmind", action="store_true", help="also write DeepMind pickles")
+    add_checkpoint_option(roll)
     add_runtime_options(roll)
     roll.set_defaults(handler=run_rollout)
 
@@ -63,9 +64,20 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--rollouts", type=Path, help="default: RUN/rollouts/SPLIT")
     ev.add_argument("--one-step-windows", type=int, default=512, help="0: skip one-step MSE")
     ev.add_argument("--every", type=int, default=1, help="OT and MMD on every k-th frame")
+    add_checkpoint_option(ev)
     add_runtime_options(ev)
     ev.set_defaults(handler=run_eval)
     return parser
+
+
+def add_checkpoint_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--checkpoint",
+        choices=("auto", "best", "latest"),
+        default="auto",
+        help="which checkpoint of a run folder: best (lowest validation rollout MSE), latest, "
+        "or auto (default: best when the run was validated, otherwise latest)",
+    )
 
 
 def add_runtime_options(parser: argparse.ArgumentParser) -> None:
@@ -104,11 +116,13 @@ def run_train(args: argparse.Namespace) -> int:
 def run_rollout(args: argparse.Namespace) -> int:
     from gns.data import open_dataset
     from gns.rollout import RolloutDiverged, rollout, save_deepmind_pickle, save_rollout
-    from gns.train import load_simulator, resolve_device
+    from gns.train import choose_checkpoint, load_simulator, resolve_device
 
     set_threads(args.threads)
     device = resolve_device(args.device)
-    simulator = load_simulator(args.run, device)
+    checkpoint = choose_checkpoint(args.run, args.checkpoint)
+    print(f"checkpoint {checkpoint}")
+    simulator = load_simulator(checkpoint, device)
     dataset = open_dataset(args.data, args.split)
     out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "rollouts" / args.split
     out.mkdir(parents=True, exist_ok=True)
@@ -116,7 +130,7 @@ def run_rollout(args: argparse.Namespace) -> int:
     diverged = 0
     for i in indices:
         trajectory = dataset[i]
-        info = {"dataset": str(args.data), "split": args.split, "checkpoint": str(args.run)}
+        info = {"dataset": str(args.data), "split": args.split, "checkpoint": str(checkpoint)}
         try:
             result = rollout(simulator, trajectory, num_steps=args.steps, metadata=info)
         except RolloutDiverged as err:
@@ -138,7 +152,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.data.atomic import write_json_atomic
     from gns.evaluate import evaluate_rollouts, one_step_errors
     from gns.rollout import load_rollout
-    from gns.train import load_simulator, resolve_device
+    from gns.train import choose_checkpoint, load_simulator, resolve_device
 
     set_threads(args.threads)
     folder = args.rollouts or args.run / "rollouts" / args.split
@@ -147,10 +161,18 @@ def run_eval(args: argparse.Namespace) -> int:
     )
     if not files:
         raise ValueError(f"no rollouts in {folder}; run `gns rollout --run {args.run} ...` first")
-    report = evaluate_rollouts([load_rollout(f) for f in files], distribution_every=args.every)
+    rollouts = [load_rollout(f) for f in files]
+    report = evaluate_rollouts(rollouts, distribution_every=args.every)
     if args.one_step_windows:
         device = resolve_device(args.device)
-        simulator = load_simulator(args.run, device)
+        # The one-step figures come from the checkpoint the rollouts were made with, unless a
+        # checkpoint was asked for.
+        made_with = {r.metadata.get("checkpoint") for r in rollouts}
+        checkpoint = choose_checkpoint(args.run, args.checkpoint)
+        if args.checkpoint == "auto" and len(made_with) == 1 and None not in made_with:
+            checkpoint = Path(str(made_with.pop()))
+        report["one_step_checkpoint"] = str(checkpoint)
+        simulator = load_simulator(checkpoint, device)
         dataset = open_dataset(args.data, args.split)
         one_step = one_step_errors(
             simulator, list(dataset), max_windows=args.one_step_windows, device=device

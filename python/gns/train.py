@@ -12,7 +12,8 @@ broadcast is off: it would overwrite them with rank 0's).
 
 A run folder holds:
     config.json           the settings (gns train --config accepts it back)
-    checkpoints/          step_000001000.pt ...: plain dicts written atomically (torch.save)
+    checkpoints/          step_000001000.pt ...: plain dicts written atomically (torch.save);
+                          best.pt: the weights with the lowest validation rollout MSE so far
     train.csv, valid.csv  loss and validation figures per logged step
     tensorboard/          the same figures for TensorBoard
 """
@@ -46,12 +47,14 @@ from gns.simulator import LearnedSimulator, Scene
 __all__ = [
     "TrainingStep",
     "batch_tensors",
+    "choose_checkpoint",
     "latest_checkpoint",
     "load_checkpoint",
     "load_simulator",
     "resolve_device",
     "save_checkpoint",
     "train",
+    "validate",
 ]
 
 CHECKPOINT_FORMAT = "gns-checkpoint-1"
@@ -168,17 +171,31 @@ def latest_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
     return found[-1] if found else None
 
 
+def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
+    """The checkpoint file meant by `path`: the file itself, or in a run folder "latest" (the
+    highest step), "best" (lowest validation rollout MSE) or "auto" (best when the run has
+    one, otherwise latest)."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    if which not in ("auto", "best", "latest"):
+        raise ValueError(f"checkpoint must be 'auto', 'best' or 'latest', got {which!r}")
+    best = path / "checkpoints" / "best.pt"
+    if which == "best" or (which == "auto" and best.is_file()):
+        if not best.is_file():
+            raise ValueError(f"{path}: no {best.name} (the run has not been validated)")
+        return best
+    found = latest_checkpoint(path)
+    if found is None:
+        raise ValueError(f"{path}: no checkpoints in {path / 'checkpoints'}")
+    return found
+
+
 def load_simulator(
-    path: str | os.PathLike[str], device: str | torch.device = "cpu"
+    path: str | os.PathLike[str], device: str | torch.device = "cpu", checkpoint: str = "auto"
 ) -> LearnedSimulator:
-    """The trained simulator of a checkpoint file or a run folder (its latest checkpoint)."""
-    checkpoint = Path(path)
-    if checkpoint.is_dir():
-        found = latest_checkpoint(checkpoint)
-        if found is None:
-            raise ValueError(f"{checkpoint}: no checkpoints in {checkpoint / 'checkpoints'}")
-        checkpoint = found
-    state = load_checkpoint(checkpoint)
+    """The trained simulator of a checkpoint file or of a run folder (see choose_checkpoint)."""
+    state = load_checkpoint(choose_checkpoint(path, checkpoint))
     simulator = _build_simulator(state["config"], state["scene"], state["statistics"])
     simulator.load_state_dict(state["model"])
     return simulator.to(resolve_device(device))
@@ -275,11 +292,12 @@ def validate(
     config: TrainConfig,
     device: torch.device,
 ) -> dict[str, float]:
-    """One-step position MSE over config.validation_windows windows of `trajectories` and mean
+    """One-step position MSE over config.validation_windows windows of `trajectories`, mean
     rollout MSE (config.validation_rollout_steps steps) over the first
-    config.validation_rollouts of them, both over non-kinematic particles, in eval mode (no
-    noise, no statistics)."""
-    from gns.evaluate import one_step_errors
+    config.validation_rollouts of them, both over non-kinematic particles, and, in a scene with
+    bounds, how far the rollouts' farthest particle got outside the box. Eval mode (no noise,
+    no statistics)."""
+    from gns.evaluate import one_step_errors, outside_box
     from gns.metrics import mse_over_time
     from gns.rollout import rollout
 
@@ -290,7 +308,8 @@ def validate(
         )
         figures["one_step_mse"] = errors["model"]
     history = simulator.config.model.velocity_history + 1
-    rollout_errors = []
+    rollout_errors, excursions = [], []
+    bounds = simulator.scene.bounds
     for trajectory in trajectories[: config.validation_rollouts]:
         steps = min(config.validation_rollout_steps, trajectory.num_frames - history)
         if steps < 1:
@@ -299,8 +318,12 @@ def validate(
         free = ~simulator.kinematic_mask(torch.from_numpy(trajectory.particle_type)).numpy()
         per_frame = mse_over_time(result.predicted_rollout, result.ground_truth_rollout, free)
         rollout_errors.append(float(per_frame.mean()))
+        if bounds is not None:
+            excursions.append(outside_box(result.predicted_rollout[:, free], bounds))
     if rollout_errors:
         figures["rollout_mse"] = float(np.mean(rollout_errors))
+    if excursions:
+        figures["rollout_outside_box"] = max(excursions)
     return figures
 
 
@@ -421,6 +444,9 @@ def train(
     generator = torch.Generator(device=device)
     generator.manual_seed(tc.seed * 1_000_003 + rank)
     start = 0
+    # {"step", "value"} of best.pt: the validation figure that chooses it is the rollout
+    # MSE (what the model is for), or the one-step MSE when validation runs no rollouts.
+    best: dict[str, float] | None = None
     if checkpoint is not None:
         saved_world = len(checkpoint["noise_generator"])
         if saved_world != world:
@@ -432,6 +458,7 @@ def train(
         sampler.load_state_dict(checkpoint["sampler"])
         generator.set_state(checkpoint["noise_generator"][rank].to(torch.uint8))
         start = int(checkpoint["step"])
+        best = checkpoint.get("best")
 
     if leader:
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -442,12 +469,8 @@ def train(
     valid_trajectories = _validation_trajectories(data, tc) if leader else []
     meter = Progress(tc.steps, start, enabled=progress and leader)
 
-    def checkpoint_state(step: int) -> dict[str, Any]:
-        states = [generator.get_state()]
-        if world > 1:  # every rank's noise stream, so each resumes its own
-            local = states[0].to(device)
-            states = [torch.empty_like(local) for _ in range(world)]
-            dist.all_gather(states, local)
+    def weights_state(step: int) -> dict[str, Any]:
+        """What load_simulator needs (best.pt holds only this)."""
         return {
             "format": CHECKPOINT_FORMAT,
             "step": step,
@@ -455,6 +478,18 @@ def train(
             "scene": dataclasses.asdict(simulator.scene),
             "statistics": statistics,
             "model": simulator.state_dict(),
+            "best": best,
+        }
+
+    def checkpoint_state(step: int) -> dict[str, Any]:
+        """Everything an exact resume needs (a collective call under DDP)."""
+        states = [generator.get_state()]
+        if world > 1:  # every rank's noise stream, so each resumes its own
+            local = states[0].to(device)
+            states = [torch.empty_like(local) for _ in range(world)]
+            dist.all_gather(states, local)
+        return {
+            **weights_state(step),
             "optimizer": optimizer.state_dict(),
             "sampler": sampler.state_dict(),
             "noise_generator": [s.cpu() for s in states],
@@ -528,6 +563,11 @@ def train(
                 figures = validate(simulator, valid_trajectories, tc, device)
                 if figures:
                     log.write("valid", done, figures)
+                key = "rollout_mse" if "rollout_mse" in figures else "one_step_mse"
+                if key in figures and (best is None or figures[key] < best["value"]):
+                    best = {"step": done, "value": figures[key]}
+                    # Weights only: best.pt is for rollouts, resuming uses step_*.pt.
+                    save_checkpoint(run_dir / "checkpoints" / "best.pt", weights_state(done))
             if done % tc.checkpoint_every == 0 or done == tc.steps:
                 write_checkpoint(done)
     finally:
