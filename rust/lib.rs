@@ -6,6 +6,7 @@
 //! - [`kdtree`]: a k-d tree search for sparse or very non-uniform clouds
 //! - [`walls`]: clipped distances to box walls and to obstacle shapes (parry)
 //! - [`integrate`]: the semi-implicit Euler update
+//! - [`mpm`]: the reference simulator (2D MLS-MPM) that makes ground truth
 
 // Per-axis loops index several per-axis arrays at once; an index reads clearer than zips.
 #![allow(clippy::needless_range_loop)]
@@ -14,6 +15,7 @@ pub mod cells;
 pub mod graph;
 pub mod integrate;
 pub mod kdtree;
+pub mod mpm;
 pub mod walls;
 
 #[cfg(feature = "python")]

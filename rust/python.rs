@@ -3,7 +3,7 @@
 //! contiguity before calling in, so this layer can be strict.
 
 use crate::graph::{GraphOptions, Method, Searcher, DEFAULT_MAX_EDGES};
-use crate::{euler_step as euler, walls, Error, Obstacle, Real};
+use crate::{euler_step as euler, mpm, walls, Error, Obstacle, Real};
 use numpy::{
     Element, PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2,
     PyUntypedArrayMethods,
@@ -434,12 +434,158 @@ fn euler_step(
     }
 }
 
+/// One material from Python: (model, density, parameters) with model "water" (bulk_modulus),
+/// "sand" (youngs_modulus, poisson_ratio, friction_angle_deg), "goop" (youngs_modulus,
+/// poisson_ratio, yield_stress) or "obstacle" (none).
+fn mpm_material(
+    index: usize,
+    (model, density, params): (String, f64, Vec<f64>),
+) -> PyResult<mpm::Material> {
+    let want = match model.as_str() {
+        "water" => 1,
+        "sand" | "goop" => 3,
+        "obstacle" => 0,
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "materials[{index}]: model must be 'water', 'sand', 'goop' or 'obstacle', got {other:?}"
+            )))
+        }
+    };
+    if params.len() != want {
+        return Err(PyValueError::new_err(format!(
+            "materials[{index}]: {model} takes {want} parameters, got {}",
+            params.len()
+        )));
+    }
+    let model = match model.as_str() {
+        "water" => mpm::Model::Water {
+            bulk_modulus: params[0],
+        },
+        "sand" => mpm::Model::Sand {
+            youngs_modulus: params[0],
+            poisson_ratio: params[1],
+            friction_angle_deg: params[2],
+        },
+        "goop" => mpm::Model::Goop {
+            youngs_modulus: params[0],
+            poisson_ratio: params[1],
+            yield_stress: params[2],
+        },
+        _ => mpm::Model::Obstacle,
+    };
+    Ok(mpm::Material { density, model })
+}
+
+/// mpm_simulate(positions, velocities, material, materials, particle_volume, frames, *, grid,
+/// bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps, progress=None)
+/// -> (positions (frames, N, 2) float32, seconds (frames - 1,), substeps (frames - 1,))
+#[pyfunction]
+#[pyo3(signature = (positions, velocities, material, materials, particle_volume, frames, *,
+                    grid, bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps,
+                    progress=None))]
+#[allow(clippy::too_many_arguments)]
+fn mpm_simulate(
+    py: Python<'_>,
+    positions: PyReadonlyArray2<'_, f64>,
+    velocities: PyReadonlyArray2<'_, f64>,
+    material: PyReadonlyArray1<'_, u32>,
+    materials: Vec<(String, f64, Vec<f64>)>,
+    particle_volume: f64,
+    frames: usize,
+    grid: usize,
+    bounds: [[f64; 2]; 2],
+    wall: &str,
+    wall_friction: f64,
+    gravity: [f64; 2],
+    frame_dt: f64,
+    cfl: f64,
+    max_substeps: usize,
+    progress: Option<Py<PyAny>>,
+) -> PyResult<Py<PyAny>> {
+    let materials = materials
+        .into_iter()
+        .enumerate()
+        .map(|(i, m)| mpm_material(i, m))
+        .collect::<PyResult<Vec<_>>>()?;
+    let wall = match wall {
+        "sticky" => mpm::Wall::Sticky,
+        "slip" => mpm::Wall::Slip,
+        "coulomb" => mpm::Wall::Coulomb(wall_friction),
+        other => {
+            return Err(PyValueError::new_err(format!(
+                "wall must be 'sticky', 'slip' or 'coulomb', got {other:?}"
+            )))
+        }
+    };
+    let settings = mpm::Settings {
+        grid,
+        bounds,
+        wall,
+        gravity,
+        frame_dt,
+        cfl,
+        max_substeps,
+    };
+    for (name, a) in [("positions", &positions), ("velocities", &velocities)] {
+        if a.shape()[1] != 2 {
+            return Err(PyValueError::new_err(format!(
+                "{name} must have shape (N, 2), got {:?}",
+                a.shape()
+            )));
+        }
+    }
+    let (x, v) = (slice(&positions)?, slice(&velocities)?);
+    let ids = material
+        .as_slice()
+        .map_err(|e| PyValueError::new_err(format!("material must be contiguous: {e}")))?;
+    let n = ids.len();
+    // A Python exception from the progress callback (e.g. KeyboardInterrupt) is re-raised as is.
+    let mut raised: Option<PyErr> = None;
+    let result = py.detach(|| {
+        mpm::simulate(
+            &settings,
+            &materials,
+            x,
+            v,
+            ids,
+            particle_volume,
+            frames,
+            |frame| {
+                Python::attach(|py| {
+                    let call = match &progress {
+                        Some(f) => f.call1(py, (frame,)).map(|_| ()),
+                        None => py.check_signals(),
+                    };
+                    call.map_err(|e| {
+                        raised = Some(e);
+                        Error::Value("stopped by the progress callback".into())
+                    })
+                })
+            },
+        )
+    });
+    if let Some(err) = raised {
+        return Err(err);
+    }
+    let out = result.map_err(to_py)?;
+    let steps = out.seconds.len();
+    let frames_array = PyArray1::from_vec(py, out.positions).reshape([frames, n, 2])?;
+    let parts = [
+        frames_array.into_any(),
+        PyArray1::from_vec(py, out.seconds).into_any(),
+        PyArray1::from_vec(py, out.substeps).into_any(),
+    ];
+    debug_assert_eq!(steps + 1, frames);
+    Ok(PyTuple::new(py, parts)?.into_any().unbind())
+}
+
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(radius_graph, m)?)?;
     m.add_function(wrap_pyfunction!(wall_features, m)?)?;
     m.add_function(wrap_pyfunction!(obstacle_features, m)?)?;
     m.add_function(wrap_pyfunction!(euler_step, m)?)?;
+    m.add_function(wrap_pyfunction!(mpm_simulate, m)?)?;
     m.add_class::<PySearcher>()?;
     m.add_class::<PyObstacle>()?;
     m.add("DEFAULT_MAX_EDGES", DEFAULT_MAX_EDGES)?;

@@ -1,4 +1,5 @@
 # Stubs for the Rust extension (rust/python.rs); checked by `python -m mypy.stubtest gns._core`.
+from collections.abc import Callable
 from typing import Any, final
 
 import numpy as np
@@ -9,6 +10,7 @@ __all__ = [
     "Obstacle",
     "RadiusSearcher",
     "euler_step",
+    "mpm_simulate",
     "obstacle_features",
     "radius_graph",
     "wall_features",
@@ -77,3 +79,21 @@ def euler_step(
     acceleration: npt.NDArray[np.floating[Any]],
     dt: float = 1.0,
 ) -> tuple[npt.NDArray[np.floating[Any]], npt.NDArray[np.floating[Any]]]: ...
+def mpm_simulate(
+    positions: npt.NDArray[np.float64],
+    velocities: npt.NDArray[np.float64],
+    material: npt.NDArray[np.uint32],
+    materials: list[tuple[str, float, list[float]]],
+    particle_volume: float,
+    frames: int,
+    *,
+    grid: int,
+    bounds: list[list[float]],
+    wall: str,
+    wall_friction: float,
+    gravity: list[float],
+    frame_dt: float,
+    cfl: float,
+    max_substeps: int,
+    progress: Callable[[int], object] | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64], npt.NDArray[np.uint32]]: ...

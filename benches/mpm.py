@@ -1,0 +1,173 @@
+"""Speed of the reference simulator (gns.mpm, 2D MLS-MPM in Rust) and calibration of the presets.
+
+    python benches/mpm.py [--quick] [--threads 1 2] [--frames 10] [--warmup 3]
+    python benches/mpm.py --calibrate [--trajectories 16] [--workers 1]
+
+Speed: a dam break, one block 0.4 wide and 0.5 high in the bottom-left corner of the walls
+[0.1, 0.9]^2, of water or of sand, at 4 particles per cell. The particle count is set by
+refining the grid (about 1k, 2k, 8k particles: grid 35, 50, 100), as a finer simulation of the
+same scene would be; the substep count grows with it through the CFL bound. Per row: wall-clock
+ms per frame (median over --frames frames after --warmup frames; perf_counter in Rust around
+each frame), substeps per frame (mean over the timed frames) and ns per particle-substep. Each
+thread count runs in its own subprocess with RAYON_NUM_THREADS set, because rayon's global pool
+is sized once, at its first use.
+
+Calibration: generates --trajectories train trajectories of the `waterdrop` and `sand` presets
+with gns.generate (frame counts of the presets, seed 0) and prints their per-frame velocity and
+acceleration std against the paper's datasets (../shared/design/reference-simulator.md), with the
+ratio ours / paper; the design asks for every ratio within [1 / 1.5, 1.5].
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SIZES = {1000: 35, 2000: 50, 8000: 100}  # particles: grid (dam break block at 4 per cell)
+QUICK_SIZES = {300: 20, 1000: 35}
+MATERIALS = ("water", "sand")
+# Per-frame statistics of the paper's data, from the design's calibration table.
+PAPER = {
+    "waterdrop": ("WaterDrop", (1.40e-3, 1.31e-3), (6.6e-5, 8.0e-5)),
+    "sand": ("Sand", (2.20e-3, 2.67e-3), (2.58e-4, 2.96e-4)),
+}
+
+
+def parse_args() -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="smaller sizes, fewer frames (smoke test)")
+    p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="rayon thread counts")
+    p.add_argument("--frames", type=int, help="timed frames per case (default 10; quick 3)")
+    p.add_argument("--warmup", type=int, help="frames before timing (default 3; quick 1)")
+    p.add_argument("--calibrate", action="store_true", help="preset statistics vs the paper's")
+    p.add_argument("--trajectories", type=int, default=16, help="per preset, with --calibrate")
+    p.add_argument("--workers", type=int, default=1, help="generate's threads, with --calibrate")
+    p.add_argument("--worker", help=argparse.SUPPRESS)  # internal: JSON cases for one subprocess
+    return p.parse_args()
+
+
+# ---------------------------------------------------------------------------------------- speed
+
+
+def dam_break(material: str, grid: int):
+    from gns.mpm import Block, MpmScene, Sand, Water
+
+    block = Block(Water() if material == "water" else Sand(), lower=(0.1, 0.1), size=(0.4, 0.5))
+    return MpmScene([block], grid=grid, particles_per_cell=4.0)
+
+
+def run_cases(cases: list[dict]) -> None:
+    """In the subprocess: time every case and print one JSON line each."""
+    from gns.mpm import simulate
+
+    for case in cases:
+        scene = dam_break(case["material"], case["grid"])
+        result = simulate(scene, case["warmup"] + case["frames"] + 1)
+        seconds = result.seconds[case["warmup"] :]
+        substeps = result.substeps[case["warmup"] :].astype(float)
+        n = result.positions.shape[1]
+        per_frame = float(np.median(seconds))
+        ns = 1e9 * float(np.median(seconds / substeps)) / n
+        row = {**case, "particles": n, "ms_per_frame": 1e3 * per_frame}
+        row.update(substeps=float(substeps.mean()), ns_per_particle_substep=ns)
+        print(json.dumps(row), flush=True)
+
+
+def speed(args: argparse.Namespace) -> None:
+    sizes = QUICK_SIZES if args.quick else SIZES
+    frames = args.frames or (3 if args.quick else 10)
+    warmup = args.warmup if args.warmup is not None else (1 if args.quick else 3)
+    cases = [
+        {"material": m, "grid": grid, "frames": frames, "warmup": warmup}
+        for m in MATERIALS
+        for grid in sizes.values()
+    ]
+    rows = []
+    for threads in args.threads:
+        env = {**os.environ, "RAYON_NUM_THREADS": str(threads)}
+        done = subprocess.run(
+            [sys.executable, __file__, "--worker", json.dumps(cases)],
+            env=env,
+            capture_output=True,
+            text=True,
+        )
+        if done.returncode:
+            raise SystemExit(f"the {threads}-thread run failed:\n{done.stderr}")
+        rows += [{**json.loads(line), "threads": threads} for line in done.stdout.splitlines()]
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(
+        f"MLS-MPM dam break (block 0.4 x 0.5, 4 particles per cell), frame dt 2.5 ms; "
+        f"median of {frames} frames after {warmup}; {os.cpu_count()} CPUs, load {load:.1f}"
+    )
+    header = (
+        f"{'material':<9} {'particles':>9} {'grid':>5} {'threads':>7} {'ms/frame':>9} "
+        f"{'substeps':>8} {'ns/(p*substep)':>14} {'speed-up':>8}"
+    )
+    print(header)
+    base = {(r["material"], r["grid"]): r["ms_per_frame"] for r in rows if r["threads"] == 1}
+    for material in MATERIALS:
+        for grid in sizes.values():
+            for r in (r for r in rows if r["material"] == material and r["grid"] == grid):
+                one = base.get((material, grid))
+                gain = f"{one / r['ms_per_frame']:.2f}" if one else "-"
+                print(
+                    f"{material:<9} {r['particles']:>9} {grid:>5} {r['threads']:>7} "
+                    f"{r['ms_per_frame']:>9.2f} {r['substeps']:>8.1f} "
+                    f"{r['ns_per_particle_substep']:>14.1f} {gain:>8}"
+                )
+
+
+# ---------------------------------------------------------------------------------- calibration
+
+
+def calibrate(args: argparse.Namespace) -> None:
+    from gns.data import open_dataset
+    from gns.generate import generate
+
+    print(
+        f"per-frame statistics of {args.trajectories} generated train trajectories (seed 0) "
+        "against the paper's; ratio = ours / paper, wanted within [0.67, 1.5]"
+    )
+    print(f"{'preset':<10} {'statistic':<8} {'axis':>4} {'ours':>10} {'paper':>10} {'ratio':>6}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for preset, (name, vel_paper, acc_paper) in PAPER.items():
+            start = time.perf_counter()
+            out = Path(tmp) / preset
+            generate(preset, out, args.trajectories, 0, 0, 0, args.workers, progress=False)
+            metadata = open_dataset(out, "train").metadata
+            assert metadata.vel_std is not None and metadata.acc_std is not None
+            for stat, ours, paper in (
+                ("vel_std", metadata.vel_std, vel_paper),
+                ("acc_std", metadata.acc_std, acc_paper),
+            ):
+                for axis in range(2):
+                    ratio = ours[axis] / paper[axis]
+                    flag = "" if 1 / 1.5 <= ratio <= 1.5 else "  outside"
+                    print(
+                        f"{preset:<10} {stat:<8} {axis:>4} {ours[axis]:>10.3e} "
+                        f"{paper[axis]:>10.3e} {ratio:>6.2f}{flag}"
+                    )
+            seconds = time.perf_counter() - start
+            print(f"({preset}: {seconds:.0f} s for {args.trajectories} trajectories, vs {name})")
+
+
+def main() -> None:
+    args = parse_args()
+    if args.worker:
+        run_cases(json.loads(args.worker))
+    elif args.calibrate:
+        calibrate(args)
+    else:
+        speed(args)
+
+
+if __name__ == "__main__":
+    main()

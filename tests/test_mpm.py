@@ -1,0 +1,144 @@
+"""The reference simulator against physics and against real data made by another MPM code."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water, simulate
+
+SAND2D = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
+G_FRAME = -9.81 * 0.0025**2  # free fall per frame^2
+
+
+def final_shape(positions: np.ndarray, floor: float = 0.1) -> tuple[float, float, float]:
+    """(leftmost x, rightmost x, pile height: 99th percentile of y above the floor)."""
+    return positions[:, 0].min(), positions[:, 0].max(), np.percentile(positions[:, 1], 99) - floor
+
+
+def test_free_fall_drops_by_g_dt_squared_per_frame_squared():
+    scene = MpmScene([Block(Water(), (0.4, 0.6), (0.1, 0.1))])
+    y = simulate(scene, 12).positions[:, :, 1].astype(np.float64).mean(axis=1)
+    np.testing.assert_allclose(np.diff(y, 2), G_FRAME, rtol=1e-2)
+
+
+def test_a_settled_water_layer_keeps_its_area():
+    # Wall to wall, so the layer cannot spread: its area is its width times its height, and
+    # for a uniform layer the height is twice the mean height of the particles above the floor
+    # (robust to the few particles that ride the surface waves).
+    height = 0.1
+    scene = MpmScene([Block(Water(), (0.1, 0.1), (0.8, height))], wall="slip")
+    positions = simulate(scene, 200).positions.astype(np.float64)
+    layer = 2.0 * (positions[:, :, 1].mean(axis=1) - 0.1)
+    assert layer[0] == pytest.approx(height, rel=1e-6)
+    np.testing.assert_allclose(layer, height, rtol=0.02)
+
+
+def column(friction_angle_deg: float, height: float) -> np.ndarray:
+    """Final positions of a 0.1-wide sand column against the left wall."""
+    sand = Sand(friction_angle_deg=friction_angle_deg)
+    return simulate(MpmScene([Block(sand, (0.1, 0.1), (0.1, height))]), 300).positions[-1]
+
+
+def surface_slope_deg(positions: np.ndarray) -> float:
+    """The deposit's surface angle: a line fitted to the highest particle of each x bin,
+    leaving out the bins next to the wall and the tip."""
+    x, y = positions[:, 0].astype(np.float64), positions[:, 1].astype(np.float64)
+    edges = np.linspace(0.1, x.max(), 12)
+    tops = [y[(x >= a) & (x < b)].max() for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    slope = -np.polyfit(centres[2:-2], np.array(tops[2:-2]), 1)[0]
+    return float(np.degrees(np.arctan(slope)))
+
+
+def test_sand_column_collapse_runout_grows_with_aspect_ratio_and_the_slope_follows_friction():
+    runouts = [column(30.0, h)[:, 0].max() - 0.2 for h in (0.05, 0.1, 0.2)]
+    assert runouts[0] < runouts[1] < runouts[2]
+    # More friction, shorter runout and a steeper deposit, never steeper than the friction angle
+    # (a collapse leaves a deposit flatter than the angle of repose).
+    deposits = {phi: column(phi, 0.1) for phi in (20.0, 30.0)}
+    assert deposits[20.0][:, 0].max() > deposits[30.0][:, 0].max()
+    slopes = {phi: surface_slope_deg(p) for phi, p in deposits.items()}
+    assert slopes[20.0] < slopes[30.0]
+    for phi, slope in slopes.items():
+        assert phi - 10.0 < slope < phi, (phi, slope)
+
+
+@pytest.mark.parametrize("name", ["sand_00.npz", "sand_04.npz", "sand_10.npz", "sand_13.npz"])
+def test_sand_matches_the_independent_taichi_run_it_copies(name):
+    """The same block, velocity, friction angle and wall friction as a trajectory of the real
+    data: runout and pile height within 15%."""
+    manifest = json.loads((SAND2D / "manifest.json").read_text())
+    entry = next(t for t in manifest["trajectories"] if t["file"] == name)
+    x, y, w, h = entry["cube"]
+    sand = Sand(friction_angle_deg=entry["friction_angle_deg"])
+    velocity = tuple(entry["initial_velocity"])
+    scene = MpmScene(
+        [Block(sand, (x, y), (w, h), velocity)], wall_friction=manifest["wall_friction"]
+    )
+    ours = simulate(scene, manifest["frames"]).positions[-1]
+    with np.load(SAND2D / name, allow_pickle=True) as archive:
+        theirs = archive["trajectory0"][0][-1]
+    (l0, r0, h0), (l1, r1, h1) = final_shape(theirs), final_shape(ours)
+    assert r1 - l1 == pytest.approx(r0 - l0, rel=0.15)
+    assert h1 == pytest.approx(h0, rel=0.15)
+
+
+def test_stiff_fast_and_plastic_materials_stay_finite_and_inside_the_walls():
+    blocks = [
+        Block(Sand(youngs_modulus=1e8), (0.15, 0.5), (0.1, 0.1), (4.0, -3.0)),
+        Block(Water(), (0.5, 0.5), (0.1, 0.1), (-4.0, 2.0)),
+        Block(Goop(), (0.7, 0.2), (0.1, 0.1), (0.0, -4.0)),
+    ]
+    result = simulate(MpmScene(blocks), 30)
+    assert np.isfinite(result.positions).all()
+    margin = 0.02  # the walls act on grid nodes, so particles may sit a little past them
+    assert result.positions.min() > 0.1 - margin and result.positions.max() < 0.9 + margin
+    assert result.substeps.max() > 50  # the CFL bound follows the stiff sand's wave speed
+    assert (result.seconds > 0).all()
+    assert set(result.particle_type.tolist()) == {5, 6, 7}
+
+
+def test_obstacles_hold_material_and_never_move():
+    ramp = Segment((0.1, 0.5), (0.6, 0.3))
+    scene = MpmScene([Block(Sand(), (0.15, 0.55), (0.1, 0.1))], obstacles=[ramp])
+    result = simulate(scene, 120)
+    kinematic = result.particle_type == 3
+    assert kinematic.any()
+    np.testing.assert_array_equal(result.positions[-1, kinematic], result.positions[0, kinematic])
+    # The sand spread down the ramp (a 22 degree slope, sticky) and stays on top of it.
+    sand = result.positions[-1, ~kinematic].astype(np.float64)
+    ramp_y = 0.5 + (sand[:, 0] - 0.1) * (0.3 - 0.5) / 0.5
+    assert sand[:, 0].mean() > result.positions[0, ~kinematic, 0].mean() + 0.02
+    assert (sand[:, 1] > ramp_y - 0.02)[sand[:, 0] < 0.55].all()
+
+
+def test_runs_are_reproducible_and_bad_input_is_rejected():
+    scene = MpmScene([Block(Water(), (0.3, 0.3), (0.1, 0.1), (1.0, 0.0))], jitter=0.5)
+    a, b = simulate(scene, 5, seed=1), simulate(scene, 5, seed=1)
+    np.testing.assert_array_equal(a.positions, b.positions)
+    assert not np.array_equal(a.positions, simulate(scene, 5, seed=2).positions)
+    with pytest.raises(ValueError, match="poisson_ratio must be in"):
+        simulate(MpmScene([Block(Sand(poisson_ratio=0.5), (0.3, 0.3), (0.1, 0.1))]), 2)
+    with pytest.raises(ValueError, match="outside the simulation domain"):
+        simulate(MpmScene([Block(Water(), (-0.2, 0.3), (0.1, 0.1))]), 2)
+    with pytest.raises(ValueError, match="wall must be"):
+        simulate(MpmScene([Block(Water(), (0.3, 0.3), (0.1, 0.1))], wall="glue"), 2)
+    with pytest.raises(ValueError, match="more than max_substeps"):
+        simulate(MpmScene([Block(Water(), (0.3, 0.3), (0.1, 0.1))], max_substeps=3), 2)
+
+
+def test_a_progress_callback_sees_every_frame_and_can_stop_the_run():
+    seen: list[int] = []
+    scene = MpmScene([Block(Water(), (0.3, 0.3), (0.1, 0.1))])
+    simulate(scene, 4, progress=seen.append)
+    assert seen == [1, 2, 3]
+
+    def stop(frame: int) -> None:
+        if frame == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        simulate(scene, 10, progress=stop)
