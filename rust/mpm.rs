@@ -136,9 +136,8 @@ impl Material {
                 "materials[{index}]: {what} must be a finite number > 0, got {v}"
             )))
         };
-        if !matches!(self.model, Model::Obstacle)
-            && !(self.density.is_finite() && self.density > 0.0)
-        {
+        let obstacle = matches!(self.model, Model::Obstacle);
+        if !obstacle && (!self.density.is_finite() || self.density <= 0.0) {
             return bad("density", self.density);
         }
         match self.model {
@@ -196,6 +195,8 @@ fn check_elastic(index: usize, e: f64, nu: f64) -> Result<()> {
 /// `particle_volume` (the area it stands for: spacing^2 on a lattice). `progress` is called
 /// after every frame with its index; an error from it stops the run. A particle that becomes NaN or leaves the grid, or a frame
 /// that needs more than max_substeps, is an error naming the frame: the run is rejected.
+// The initial state is four parallel inputs; a struct for them would only be unpacked here.
+#[allow(clippy::too_many_arguments)]
 pub fn simulate(
     settings: &Settings,
     materials: &[Material],
