@@ -208,14 +208,6 @@ pub fn simulate(
     mut progress: impl FnMut(usize) -> Result<()>,
 ) -> Result<Output> {
     let n = material.len();
-    check_inputs(
-        settings,
-        materials,
-        positions,
-        velocities,
-        material,
-        particle_volume,
-    )?;
     if frames == 0 {
         return Err(Error::Value(
             "frames must be >= 1 (frame 0 is the initial state)".into(),
@@ -228,7 +220,7 @@ pub fn simulate(
         velocities,
         material,
         particle_volume,
-    );
+    )?;
     let mut out = Output {
         positions: Vec::with_capacity(frames * n * 2),
         seconds: Vec::with_capacity(frames - 1),
@@ -409,7 +401,8 @@ impl<'a> Mpm<'a> {
         velocities: &[f64],
         material: &[u32],
         volume: f64,
-    ) -> Self {
+    ) -> Result<Self> {
+        check_inputs(s, materials, positions, velocities, material, volume)?;
         let n = material.len();
         let nodes = s.grid + 1;
         let dx = 1.0 / s.grid as f64;
@@ -429,7 +422,7 @@ impl<'a> Mpm<'a> {
                 }
             }
         }
-        Mpm {
+        Ok(Mpm {
             s,
             materials,
             lame: materials.iter().map(Material::lame).collect(),
@@ -456,7 +449,7 @@ impl<'a> Mpm<'a> {
             } else {
                 vec![]
             },
-        }
+        })
     }
 
     fn record(&self, out: &mut Vec<f32>) {
