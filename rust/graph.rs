@@ -9,7 +9,7 @@
 
 use crate::cells::Grid;
 use crate::kdtree::KdTree;
-use crate::{first_non_finite, Error, Real, Result};
+use crate::{check_positive, first_non_finite, Error, Real, Result};
 use rayon::prelude::*;
 use std::str::FromStr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -136,11 +136,7 @@ pub(crate) struct Prepared {
 
 fn validate_options(dim: usize, opts: &GraphOptions) -> Result<Metric> {
     let r = opts.radius;
-    if !(r.is_finite() && r > 0.0) {
-        return Err(Error::Value(format!(
-            "radius must be a finite number > 0, got {r}"
-        )));
-    }
+    check_positive("radius", r)?;
     let mut periodic = [false; 3];
     if !opts.periodic.is_empty() {
         if opts.periodic.len() != dim {
@@ -162,11 +158,7 @@ fn validate_options(dim: usize, opts: &GraphOptions) -> Result<Metric> {
                 )));
             }
             for (d, &l) in b.iter().enumerate() {
-                if !(l.is_finite() && l > 0.0) {
-                    return Err(Error::Value(format!(
-                        "box length on axis {d} must be a finite number > 0, got {l}"
-                    )));
-                }
+                check_positive(&format!("box length on axis {d}"), l)?;
                 if periodic[d] && l < 2.0 * r {
                     return Err(Error::Value(format!(
                         "box length {l} on periodic axis {d} is narrower than 2 * radius = {}; \

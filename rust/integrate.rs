@@ -1,7 +1,7 @@
 //! The semi-implicit Euler update with which the model's accelerations advance the particles:
 //! v' = v + dt a, then x' = x + dt v' (the new velocity moves the particle, as in the paper).
 
-use crate::{first_non_finite, Error, Real, Result};
+use crate::{check_positive, first_non_finite, Error, Real, Result};
 
 /// Returns (new position, new velocity), each the shape of the inputs. Computed in f64 and
 /// rounded once to the input precision. Non-finite inputs or results are errors naming the
@@ -28,11 +28,7 @@ pub fn euler_step<T: Real>(
             )));
         }
     }
-    if !(dt.is_finite() && dt > 0.0) {
-        return Err(Error::Value(format!(
-            "dt must be a finite number > 0, got {dt}"
-        )));
-    }
+    check_positive("dt", dt)?;
     for (name, a) in [
         ("position", position),
         ("velocity", velocity),

@@ -91,6 +91,17 @@ impl Real for f64 {
     }
 }
 
+/// Ok for a finite value > 0; otherwise the error every parameter check of the crate gives.
+pub(crate) fn check_positive(name: &str, value: f64) -> Result<()> {
+    if value.is_finite() && value > 0.0 {
+        Ok(())
+    } else {
+        Err(Error::Value(format!(
+            "{name} must be a finite number > 0, got {value}"
+        )))
+    }
+}
+
 /// The first non-finite value of a row-major `(n, dim)` array, as (row, column).
 pub(crate) fn first_non_finite<T: Real>(values: &[T], dim: usize) -> Option<(usize, usize)> {
     values

@@ -9,7 +9,7 @@
 //! Everything is f64; the P2G scatter is split into fixed chunks of particles whose grids are
 //! summed in a fixed order, so results do not depend on the number of threads.
 
-use crate::{Error, Result};
+use crate::{check_positive, Error, Result};
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -131,19 +131,12 @@ impl Material {
     }
 
     fn check(&self, index: usize) -> Result<()> {
-        let bad = |what: &str, v: f64| {
-            Err(Error::Value(format!(
-                "materials[{index}]: {what} must be a finite number > 0, got {v}"
-            )))
-        };
-        let obstacle = matches!(self.model, Model::Obstacle);
-        if !obstacle && (!self.density.is_finite() || self.density <= 0.0) {
-            return bad("density", self.density);
+        let name = |what: &str| format!("materials[{index}]: {what}");
+        if !matches!(self.model, Model::Obstacle) {
+            check_positive(&name("density"), self.density)?;
         }
         match self.model {
-            Model::Water { bulk_modulus } if !(bulk_modulus.is_finite() && bulk_modulus > 0.0) => {
-                bad("bulk_modulus", bulk_modulus)
-            }
+            Model::Water { bulk_modulus } => check_positive(&name("bulk_modulus"), bulk_modulus),
             Model::Sand {
                 youngs_modulus: e,
                 poisson_ratio: nu,
@@ -177,11 +170,7 @@ impl Material {
 }
 
 fn check_elastic(index: usize, e: f64, nu: f64) -> Result<()> {
-    if !(e.is_finite() && e > 0.0) {
-        return Err(Error::Value(format!(
-            "materials[{index}]: youngs_modulus must be a finite number > 0, got {e}"
-        )));
-    }
+    check_positive(&format!("materials[{index}]: youngs_modulus"), e)?;
     if !(nu.is_finite() && (0.0..0.5).contains(&nu)) {
         return Err(Error::Value(format!(
             "materials[{index}]: poisson_ratio must be in [0, 0.5), got {nu}"
@@ -193,8 +182,9 @@ fn check_elastic(index: usize, e: f64, nu: f64) -> Result<()> {
 /// Runs `frames - 1` frames from the initial positions and velocities ((N, 2) row-major) of
 /// particles of the given materials (an index into `materials` per particle), each of volume
 /// `particle_volume` (the area it stands for: spacing^2 on a lattice). `progress` is called
-/// after every frame with its index; an error from it stops the run. A particle that becomes NaN or leaves the grid, or a frame
-/// that needs more than max_substeps, is an error naming the frame: the run is rejected.
+/// after every frame with its index; an error from it stops the run. A particle that becomes
+/// NaN or leaves the grid, or a frame that needs more than max_substeps, is an error naming the
+/// frame: the run is rejected.
 // The initial state is four parallel inputs; a struct for them would only be unpacked here.
 #[allow(clippy::too_many_arguments)]
 pub fn simulate(
@@ -269,11 +259,7 @@ fn check_inputs(
             materials.len()
         )));
     }
-    if !(particle_volume.is_finite() && particle_volume > 0.0) {
-        return Err(Error::Value(format!(
-            "particle_volume must be a finite number > 0, got {particle_volume}"
-        )));
-    }
+    check_positive("particle_volume", particle_volume)?;
     if s.grid < 8 {
         return Err(Error::Value(format!(
             "grid must be >= 8 cells, got {}",
@@ -293,13 +279,8 @@ fn check_inputs(
             )));
         }
     }
-    for (name, v) in [("frame_dt", s.frame_dt), ("cfl", s.cfl)] {
-        if !(v.is_finite() && v > 0.0) {
-            return Err(Error::Value(format!(
-                "{name} must be a finite number > 0, got {v}"
-            )));
-        }
-    }
+    check_positive("frame_dt", s.frame_dt)?;
+    check_positive("cfl", s.cfl)?;
     if s.cfl > 1.0 {
         return Err(Error::Value(format!("cfl must be <= 1, got {}", s.cfl)));
     }

@@ -2,7 +2,7 @@
 //! axis-aligned box (the paper's wall features), and clipped vectors to obstacle shapes
 //! (parry) for irregular geometry such as ramps, so a scene need not be lined with particles.
 
-use crate::{first_non_finite, Error, Real, Result};
+use crate::{check_positive, first_non_finite, Error, Real, Result};
 use parry2d_f64 as p2;
 use parry3d_f64 as p3;
 use rayon::prelude::*;
@@ -29,16 +29,6 @@ fn check_positions<T: Real>(positions: &[T], dim: usize) -> Result<usize> {
         )));
     }
     Ok(positions.len() / dim)
-}
-
-fn check_radius(radius: f64) -> Result<()> {
-    if radius.is_finite() && radius > 0.0 {
-        Ok(())
-    } else {
-        Err(Error::Value(format!(
-            "radius must be a finite number > 0, got {radius}"
-        )))
-    }
 }
 
 /// Runs `row(i, out_row)` over rows of `width` values, in parallel for large inputs.
@@ -72,7 +62,7 @@ pub fn wall_features<T: Real>(
     clip: f64,
 ) -> Result<Vec<T>> {
     let n = check_positions(positions, dim)?;
-    check_radius(radius)?;
+    check_positive("radius", radius)?;
     if bounds.len() != 2 * dim {
         return Err(Error::Shape(format!(
             "bounds must be (dim, 2) = ({dim}, 2) pairs [lower, upper], got {} values",
@@ -261,7 +251,7 @@ pub fn obstacle_features<T: Real>(
     radius: f64,
 ) -> Result<Vec<T>> {
     let n = check_positions(positions, dim)?;
-    check_radius(radius)?;
+    check_positive("radius", radius)?;
     for (k, o) in obstacles.iter().enumerate() {
         if o.dim() != dim {
             return Err(Error::Shape(format!(

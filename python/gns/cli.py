@@ -191,9 +191,10 @@ def run_eval(args: argparse.Namespace) -> int:
         # The one-step figures come from the checkpoint the rollouts were made with, unless a
         # checkpoint was asked for.
         made_with = {r.metadata.get("checkpoint") for r in rollouts}
-        checkpoint = choose_checkpoint(args.run, args.checkpoint)
         if args.checkpoint == "auto" and len(made_with) == 1 and None not in made_with:
             checkpoint = Path(str(made_with.pop()))
+        else:
+            checkpoint = choose_checkpoint(args.run, args.checkpoint)
         report["one_step_checkpoint"] = str(checkpoint)
         simulator = load_simulator(checkpoint, device)
         dataset = open_dataset(args.data, args.split)
