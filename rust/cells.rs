@@ -10,7 +10,10 @@ use rayon::prelude::*;
 const MAX_CELLS_PER_PARTICLE: usize = 4;
 const MIN_CELL_BUDGET: usize = 4096;
 /// From this many particles the counting sort runs on every thread.
-const PARALLEL_SORT_FROM: usize = 32_768;
+const PARALLEL_SORT_FROM: usize = 8_192;
+/// Values past the end of the sorted arrays, so that [`Grid::gather`] may copy whole chunks
+/// of 4 from the end of the last run.
+const CHUNK_SLACK: usize = 4;
 
 pub(crate) struct Grid<const D: usize> {
     len: usize,
@@ -167,7 +170,8 @@ impl<const D: usize> Grid<D> {
         let parts = len.div_ceil(chunk).max(1);
         let (n, lo, inv) = (self.n, self.lo, self.inv_cell);
         let cell_id = |x: &[f64]| cell_id::<D>(&n, &lo, &inv, x);
-        self.cell_in.clear();
+        // Arrays that are overwritten in full are resized, not cleared: zeroing them first
+        // would be a pass over memory for nothing.
         self.cell_in.resize(len, 0);
         self.cursor.clear();
         self.cursor.resize(parts * n_cells, 0);
@@ -188,7 +192,6 @@ impl<const D: usize> Grid<D> {
                 .for_each(histogram);
         }
         // Histograms to cursors: cell by cell, part by part.
-        self.cell_start.clear();
         self.cell_start.resize(n_cells + 1, 0);
         let mut acc = 0u32;
         for c in 0..n_cells {
@@ -200,11 +203,8 @@ impl<const D: usize> Grid<D> {
             }
         }
         self.cell_start[n_cells] = acc;
-        self.order.clear();
-        self.order.resize(len, 0);
-        self.sorted.clear();
-        self.sorted.resize(D * len, 0.0);
-        self.cell_of.clear();
+        self.order.resize(len + CHUNK_SLACK, 0);
+        self.sorted.resize(D * len + CHUNK_SLACK, 0.0);
         self.cell_of.resize(len, 0);
         let (order, sorted, cell_of) = (
             SharedMut(self.order.as_mut_ptr()),
@@ -240,14 +240,14 @@ impl<const D: usize> Grid<D> {
 
     /// The contiguous runs of sorted positions (a, b) that can hold neighbours of the
     /// particles of cell c: up to 3 (2D) or 9 (3D) rows, split in two where a periodic row wraps.
-    fn runs_of_cell(&self, mut id: usize) -> ([(usize, usize); 18], usize) {
+    /// Written into `runs`, not returned: copying the array out costs more than filling it.
+    fn runs_of_cell(&self, mut id: usize, runs: &mut [(usize, usize); 18]) -> usize {
         let mut c = [0usize; D];
         for d in (0..D).rev() {
             c[d] = id % self.n[d];
             id /= self.n[d];
         }
         let (inner, n_inner) = AxisCells::new(c[D - 1], self.n[D - 1], self.periodic[D - 1]).runs();
-        let mut runs = [(0, 0); 18];
         let mut k = 0;
         let mut visit_row = |row: usize| {
             let base = row * self.n[D - 1];
@@ -270,7 +270,7 @@ impl<const D: usize> Grid<D> {
                 }
             }
         }
-        (runs, k)
+        k
     }
 
     /// Calls `f(p0, p1, runs)` for each stretch p0..p1 of the queries lo..hi that share a
@@ -283,10 +283,11 @@ impl<const D: usize> Grid<D> {
         mut f: impl FnMut(usize, usize, &[(usize, usize)]) -> bool,
     ) {
         let mut p = lo;
+        let mut runs = [(0, 0); 18];
         while p < hi {
             let c = self.cell_of[p] as usize;
             let end = (self.cell_start[c + 1] as usize).min(hi);
-            let (runs, k) = self.runs_of_cell(c);
+            let k = self.runs_of_cell(c, &mut runs);
             if !f(p, end, &runs[..k]) {
                 return;
             }
@@ -305,28 +306,38 @@ impl<const D: usize> Grid<D> {
 
     /// Copies the candidates of `runs` into one contiguous axis-major block, padded to a
     /// multiple of 4 with points at infinity (never within any radius), so that one SIMD loop
-    /// without a scalar tail serves every query of the cell. Returns the padded width.
+    /// without a scalar tail serves every query of the cell. Returns the padded width; axis d
+    /// of the block starts at d * (width + 4).
     fn gather(&self, runs: &[(usize, usize)], coords: &mut Vec<f64>, ids: &mut Vec<u32>) -> usize {
         let n: usize = runs.iter().map(|&(a, b)| b - a).sum();
         let width = n.div_ceil(4) * 4;
-        if coords.len() < D * width {
-            coords.resize(D * width, 0.0);
+        // Runs are copied in whole chunks of 4, which may overshoot a run's end by 3: the
+        // next run or the padding overwrites that, and the 4 extra slots per axis keep the
+        // overshoot of one axis out of the next.
+        let stride = width + 4;
+        if coords.len() < D * stride {
+            coords.resize(D * stride, 0.0);
         }
-        if ids.len() < width {
-            ids.resize(width, 0);
+        if ids.len() < stride {
+            ids.resize(stride, 0);
         }
         let mut k = 0;
         for &(a, b) in runs {
             let m = b - a;
-            for d in 0..D {
-                let (src, dst) = (d * self.len + a, d * width + k);
-                coords[dst..dst + m].copy_from_slice(&self.sorted[src..src + m]);
+            // SAFETY: reads stay below a + m + 3 <= len + 3 of an axis, and `sorted` and
+            // `order` carry CHUNK_SLACK values past the last axis; writes stay below
+            // k + m + 3 < stride of each axis, as k + m <= n <= width.
+            unsafe {
+                for d in 0..D {
+                    let src = self.sorted.as_ptr().add(d * self.len + a);
+                    copy_chunks(src, coords.as_mut_ptr().add(d * stride + k), m);
+                }
+                copy_chunks(self.order.as_ptr().add(a), ids.as_mut_ptr().add(k), m);
             }
-            ids[k..k + m].copy_from_slice(&self.order[a..b]);
             k += m;
         }
         for d in 0..D {
-            coords[d * width + n..(d + 1) * width].fill(f64::INFINITY);
+            coords[d * stride + n..d * stride + width].fill(f64::INFINITY);
         }
         ids[n..width].fill(u32::MAX);
         width
@@ -371,6 +382,7 @@ impl<const D: usize> Grid<D> {
                     ctx.avx2,
                     &found.coords,
                     &found.ids,
+                    w + 4,
                     w,
                     &q,
                     r2,
@@ -392,13 +404,15 @@ impl<const D: usize> Grid<D> {
     }
 }
 
-/// Writes the ids of the neighbours of q in a gathered block to the front of `out` (which
-/// needs 4 slots of slack) and returns how many.
+/// Writes the ids of the neighbours of q among the first w points of a gathered block (axis d
+/// at d * stride) to the front of `out` (which needs 4 slots of slack) and returns how many.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn collect_block<const D: usize>(
     avx2: bool,
     coords: &[f64],
     ids: &[u32],
+    stride: usize,
     w: usize,
     q: &[f64; D],
     r2: f64,
@@ -407,10 +421,24 @@ fn collect_block<const D: usize>(
     #[cfg(target_arch = "x86_64")]
     if avx2 {
         // SAFETY: avx2 is only set when the CPU has AVX2.
-        return unsafe { collect_run_avx2::<D>(coords, ids, w, 0, w, q, r2, out) };
+        return unsafe { collect_run_avx2::<D>(coords, ids, stride, 0, w, q, r2, out) };
     }
     let _ = avx2;
-    collect_run::<D>(coords, ids, w, 0, w, q, r2, out)
+    collect_run::<D>(coords, ids, stride, 0, w, q, r2, out)
+}
+
+/// Copies m values in whole chunks of 4 (up to 3 past m): a few vector moves, where a
+/// memcpy call for a dozen values costs more than the copy.
+///
+/// # Safety
+/// src and dst must be valid for m rounded up to a multiple of 4 values.
+#[inline(always)]
+unsafe fn copy_chunks<T: Copy>(src: *const T, dst: *mut T, m: usize) {
+    let mut t = 0;
+    while t < m {
+        std::ptr::copy_nonoverlapping(src.add(t), dst.add(t), 4);
+        t += 4;
+    }
 }
 
 /// Row-major cell id (last axis fastest) of the point x.
@@ -562,7 +590,7 @@ mod tests {
             ([1.0, 1.0, 1.0], 0.0),
         ] {
             let mut portable = vec![0u32; w + 4];
-            let n = collect_block::<3>(false, &coords, &ids, w, &q, r2, &mut portable);
+            let n = collect_block::<3>(false, &coords, &ids, w, w, &q, r2, &mut portable);
             let want: Vec<u32> = (0..w)
                 .filter(|&k| {
                     let d: Vec<f64> = (0..3).map(|a| coords[a * w + k] - q[a]).collect();
@@ -574,7 +602,7 @@ mod tests {
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx2") {
                 let mut wide = vec![0u32; w + 4];
-                let m = collect_block::<3>(true, &coords, &ids, w, &q, r2, &mut wide);
+                let m = collect_block::<3>(true, &coords, &ids, w, w, &q, r2, &mut wide);
                 assert_eq!(&wide[..m], &want[..]);
             }
         }

@@ -469,7 +469,10 @@ impl<T> SharedMut<T> {
 #[derive(Default)]
 struct TaskRows {
     queries: Vec<u32>,
+    /// senders[..used] are this call's rows; the rest is room kept from earlier calls, so
+    /// that a row is written once rather than zeroed first.
     senders: Vec<u32>,
+    used: usize,
     /// dim values per edge, only when shifts were asked for.
     shifts: Vec<i32>,
 }
@@ -735,31 +738,59 @@ fn sort_into(row: &mut [u32], out: &mut [u32]) {
     }
 }
 
-/// [`sort_into`] for rows of at most 48: each value's rank is a count of smaller values,
-/// 8 comparisons per instruction (indices are biased by 2^31 for a signed compare).
+/// [`sort_into`] for rows of at most 48: the rank of each value is the count of smaller
+/// values, worked out for 8 values at once: each value in turn is broadcast and compared with
+/// every vector of the row (indices are biased by 2^31 for the signed compare).
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,popcnt")]
+#[target_feature(enable = "avx2")]
 unsafe fn rank_sort_avx2(row: &[u32], out: &mut [u32]) {
-    use std::arch::x86_64::*;
-    const BIAS: u32 = 0x8000_0000;
     assert!(row.len() <= 48 && out.len() == row.len());
-    let mut padded = [i32::MAX; 48];
-    for (p, &x) in padded.iter_mut().zip(row) {
-        *p = (x ^ BIAS) as i32;
+    // A fixed vector count keeps the row and its ranks in registers.
+    match row.len().div_ceil(8) {
+        0 => {}
+        1 => rank_sort_vectors::<1>(row, out),
+        2 => rank_sort_vectors::<2>(row, out),
+        3 => rank_sort_vectors::<3>(row, out),
+        4 => rank_sort_vectors::<4>(row, out),
+        5 => rank_sort_vectors::<5>(row, out),
+        _ => rank_sort_vectors::<6>(row, out),
     }
-    let nv = row.len().div_ceil(8);
-    let mut v = [_mm256_setzero_si256(); 6];
-    for (k, vk) in v.iter_mut().enumerate().take(nv) {
-        *vk = _mm256_loadu_si256(padded.as_ptr().add(8 * k) as *const __m256i);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[inline]
+unsafe fn rank_sort_vectors<const NV: usize>(row: &[u32], out: &mut [u32]) {
+    use std::arch::x86_64::*;
+    // Lanes 0..r of a masked load are MASK_WINDOW[8 - r..16 - r].
+    static MASK_WINDOW: [i32; 16] = [-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0];
+    let m = row.len();
+    debug_assert!(m.div_ceil(8) == NV && out.len() == m);
+    let bias = _mm256_set1_epi32(i32::MIN);
+    let mut v = [_mm256_setzero_si256(); NV];
+    for (k, vk) in v.iter_mut().enumerate() {
+        // A masked load reads only the lanes of the row, never past its end; the padding
+        // lanes get ranks too, which are never read.
+        let lanes = (m - 8 * k).min(8);
+        let mask = _mm256_loadu_si256(MASK_WINDOW.as_ptr().add(8 - lanes) as *const __m256i);
+        let x = _mm256_maskload_epi32(row.as_ptr().add(8 * k) as *const i32, mask);
+        *vk = _mm256_xor_si256(x, bias);
     }
-    for (k, &x) in row.iter().enumerate() {
-        let xb = _mm256_set1_epi32(padded[k]);
-        let mut rank = 0u32;
-        for vk in &v[..nv] {
-            let smaller = _mm256_cmpgt_epi32(xb, *vk);
-            rank += (_mm256_movemask_ps(_mm256_castsi256_ps(smaller)) as u32).count_ones();
+    let mut rank = [_mm256_setzero_si256(); NV];
+    for &x in row {
+        let xb = _mm256_set1_epi32((x ^ 0x8000_0000) as i32);
+        for k in 0..NV {
+            // -1 in the lanes whose value is greater than x: x counts as smaller there.
+            rank[k] = _mm256_sub_epi32(rank[k], _mm256_cmpgt_epi32(v[k], xb));
         }
-        out[rank as usize] = x;
+    }
+    let mut ranks = [[0u32; 8]; NV];
+    for k in 0..NV {
+        _mm256_storeu_si256(ranks[k].as_mut_ptr() as *mut __m256i, rank[k]);
+    }
+    for (&x, &r) in row.iter().zip(ranks.as_flattened()) {
+        // The values are distinct indices, so the ranks are a permutation of 0..m.
+        *out.get_unchecked_mut(r as usize) = x;
     }
 }
 
@@ -874,7 +905,7 @@ impl Collect<'_> {
         };
         let run_task = |(task_rows, &(g, lo, hi)): (&mut TaskRows, &(usize, usize, usize))| {
             task_rows.queries.clear();
-            task_rows.senders.clear();
+            task_rows.used = 0;
             task_rows.shifts.clear();
             if over.load(Ordering::Relaxed) {
                 return;
@@ -887,9 +918,14 @@ impl Collect<'_> {
                 task_rows.queries.push(i as u32);
                 // SAFETY: each particle is the query of exactly one task.
                 unsafe { *out_counts.ptr().add(i) = len as u32 };
-                let start = task_rows.senders.len();
-                task_rows.senders.resize(start + len, 0);
-                let dst = &mut task_rows.senders[start..];
+                let (start, end) = (task_rows.used, task_rows.used + len);
+                if task_rows.senders.len() < end {
+                    task_rows
+                        .senders
+                        .resize(end.max(2 * task_rows.senders.len()), 0);
+                }
+                task_rows.used = end;
+                let dst = &mut task_rows.senders[start..end];
                 if !self.want_shifts {
                     sort_into(senders, dst);
                 } else {
