@@ -20,10 +20,12 @@ from gns.data.windows import WindowSampler
 from gns.train import (
     TrainingStep,
     batch_tensors,
+    better_validation,
     choose_checkpoint,
     latest_checkpoint,
     load_checkpoint,
     load_simulator,
+    stays_in_box,
     train,
     validate,
 )
@@ -206,10 +208,15 @@ def test_training_reduces_the_loss_and_validates(tmp_path):
     for row in valid:
         assert np.isfinite(float(row["one_step_mse"])) and np.isfinite(float(row["rollout_mse"]))
         assert 0.0 <= float(row["rollout_outside_box"]) < 0.1
-    # best.pt holds the weights of the validation with the lowest rollout MSE: validating them
-    # again reproduces that row, and a run folder loads them unless latest is asked for.
-    errors = [float(r["rollout_mse"]) for r in valid]
-    best_row = valid[int(np.argmin(errors))]
+    # best.pt holds the weights of the best validation (rollouts in the box first, then the
+    # lowest rollout MSE): validating them again reproduces that row, and a run folder loads
+    # them unless latest is asked for.
+    radius = load_simulator(tmp_path / "run").scene.radius
+    in_box = [
+        float(r["rollout_outside_box"]) <= float(r["truth_outside_box"]) + 0.5 * radius
+        for r in valid
+    ]
+    best_row = min(valid, key=lambda r: (not in_box[valid.index(r)], float(r["rollout_mse"])))
     best = load_checkpoint(tmp_path / "run/checkpoints/best.pt")
     assert best["step"] == int(best_row["step"])
     assert choose_checkpoint(tmp_path / "run") == tmp_path / "run/checkpoints/best.pt"
@@ -288,3 +295,32 @@ def test_ddp_ranks_stay_identical_and_match_one_process_on_the_combined_batch(tm
     losses_ddp = [float(r["loss"]) for r in read_csv(tmp_path / "ddp/train.csv")]
     losses_one = [float(r["loss"]) for r in read_csv(tmp_path / "one/train.csv")]
     assert losses_ddp == pytest.approx(losses_one, rel=1e-4)
+
+
+def test_validation_prefers_rollouts_that_stay_in_the_box():
+    radius = 0.02
+    leaves = {"rollout_mse": 0.05, "rollout_outside_box": 0.013, "truth_outside_box": 0.002}
+    leaking = {"rollout_mse": 0.01, "rollout_outside_box": 0.3, "truth_outside_box": 0.002}
+    # Allowed: the truth's own 0.002 plus half the radius, 0.012 in all: 0.013 is past it.
+    assert not stays_in_box(leaves, radius)
+    assert stays_in_box({**leaves, "rollout_outside_box": 0.0119}, radius)
+    assert stays_in_box({"rollout_mse": 1.0}, radius)  # no bounds: nothing to leave
+    first = better_validation(leaking, None, radius)
+    assert first == {"value": 0.01, "in_box": False}
+    ok = {**leaves, "rollout_outside_box": 0.0119}
+    # In the box beats a lower MSE that leaked; then only a lower MSE in the box beats it.
+    assert better_validation(ok, first, radius) == {"value": 0.05, "in_box": True}
+    assert better_validation(leaking, {"value": 0.05, "in_box": True}, radius) is None
+    assert better_validation({**ok, "rollout_mse": 0.04}, {"value": 0.05, "in_box": True}, radius)
+    assert (
+        better_validation({**ok, "rollout_mse": 0.06}, {"value": 0.05, "in_box": True}, radius)
+        is None
+    )
+    # Records saved before "in_box" existed count as having left the box.
+    assert better_validation(ok, {"step": 6000, "value": 0.001}, radius)["in_box"]
+    # Without rollouts the one-step MSE decides.
+    assert better_validation({"one_step_mse": 2e-8}, None, radius) == {
+        "value": 2e-8,
+        "in_box": True,
+    }
+    assert better_validation({}, None, radius) is None

@@ -28,6 +28,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--config", type=Path, help="TOML settings (or a run's config.json)")
     train.add_argument("--steps", type=int, help="override train.steps")
     train.add_argument("--resume", action="store_true", help="continue the run in --out")
+    train.add_argument(
+        "--time-limit",
+        type=float,
+        metavar="MINUTES",
+        help="stop after this much wall-clock time with a checkpoint (--resume continues)",
+    )
     add_runtime_options(train)
     train.add_argument("--quiet", action="store_true", help="no progress line")
     train.set_defaults(handler=run_train)
@@ -90,6 +96,84 @@ def build_parser() -> argparse.ArgumentParser:
     )
     gen.add_argument("--quiet", action="store_true", help="no progress line")
     gen.set_defaults(handler=run_generate)
+
+    rep = sub.add_parser(
+        "report",
+        help="rollout error against run time per frame: GNS, the reference simulator, baseline",
+        description="Rolls out each checkpoint on the split (timed), re-runs the reference MPM "
+        "simulator at native and cheaper settings when the dataset was made by `gns generate`, "
+        "scores them and the constant-velocity baseline (MSE, optimal transport, MMD at "
+        "several horizons), and writes report.md / report.html, table.{md,csv,json}, "
+        "error_vs_time.png, error_over_time.png, a GIF of one rollout and VTK files to --out.",
+    )
+    rep.add_argument("--run", type=Path, required=True, help="run folder or checkpoint file")
+    rep.add_argument("--data", type=Path, required=True, help="dataset folder")
+    rep.add_argument("--split", default="test")
+    rep.add_argument(
+        "--checkpoint",
+        nargs="+",
+        default=["auto"],
+        metavar="auto|best|latest|PATH",
+        help="one row per checkpoint (default auto: best when the run was validated)",
+    )
+    rep.add_argument("--out", type=Path, help="default: RUN/report_SPLIT")
+    rep.add_argument("--trajectories", type=int, metavar="N", help="the first N (default all)")
+    rep.add_argument(
+        "--horizons",
+        nargs="+",
+        default=["1", "10", "50", "full"],
+        help="frames from the first prediction, or full (default: 1 10 50 full)",
+    )
+    rep.add_argument(
+        "--every",
+        type=int,
+        metavar="K",
+        help="optimal transport and MMD on every K-th predicted frame (default 10)",
+    )
+    rep.add_argument(
+        "--mpm",
+        nargs="+",
+        default=["auto"],
+        metavar="SETTING",
+        help="reference simulator rows: auto (native, half grid, twice cfl, both), native, "
+        "grid=N, cfl=X, grid=N,cfl=X, or none",
+    )
+    rep.add_argument(
+        "--animation-frames", type=int, default=120, help="frames in the GIF (0: none)"
+    )
+    rep.add_argument(
+        "--vtk-every", type=int, help="VTK frame stride (0: none; default: about 100 frames)"
+    )
+    add_runtime_options(rep)
+    rep.add_argument("--quiet", action="store_true", help="no progress lines")
+    rep.set_defaults(handler=run_report)
+
+    from gns.demo import SIZES
+
+    demo = sub.add_parser(
+        "demo",
+        help="generate a small dataset, train a GNS for minutes, write the report (all on CPU)",
+        description="OUT/data (gns generate), OUT/run (gns train, time-limited), OUT/report "
+        "(gns report on the test split). Repeating the command resumes. The default (size "
+        "small) takes about 5-10 minutes on a 2-core CPU.",
+    )
+    demo.add_argument("--out", type=Path, default=Path("demo"), help="default: ./demo")
+    demo.add_argument("--preset", default="sand", help="gns generate preset (default sand)")
+    demo.add_argument("--size", choices=list(SIZES), default="small", help="default small")
+    demo.add_argument("--train-minutes", type=float, help="training time (default: the size's)")
+    demo.add_argument("--steps", type=int, help="at most this many training steps")
+    demo.add_argument(
+        "--trajectories",
+        type=int,
+        nargs=3,
+        metavar=("TRAIN", "VALID", "TEST"),
+        help="trajectories per split (default: the size's)",
+    )
+    demo.add_argument("--frames", type=int, help="frames per trajectory (default: the size's)")
+    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--workers", type=int, help="simulations at once (default: CPU count)")
+    add_runtime_options(demo)
+    demo.set_defaults(handler=run_demo)
     return parser
 
 
@@ -132,6 +216,7 @@ def run_train(args: argparse.Namespace) -> int:
         resume=args.resume,
         device=args.device,
         progress=not args.quiet,
+        time_limit=None if args.time_limit is None else 60.0 * args.time_limit,
     )
     return 0
 
@@ -244,8 +329,58 @@ def run_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _command_line(argv: list[str] | None) -> str:
+    import shlex
+
+    return shlex.join(["gns", *(sys.argv[1:] if argv is None else argv)])
+
+
+def run_report(args: argparse.Namespace) -> int:
+    from gns.report import DEFAULT_EVERY, report
+
+    set_threads(args.threads)
+    report(
+        args.run,
+        args.data,
+        split=args.split,
+        checkpoints=args.checkpoint,
+        out=args.out,
+        trajectories=args.trajectories,
+        horizons=args.horizons,
+        every=DEFAULT_EVERY if args.every is None else args.every,
+        mpm=args.mpm,
+        animation_frames=args.animation_frames,
+        vtk_every=args.vtk_every,
+        device=args.device,
+        progress=not args.quiet,
+        command=args.command_line,
+    )
+    return 0
+
+
+def run_demo(args: argparse.Namespace) -> int:
+    from gns.demo import demo
+
+    set_threads(args.threads)
+    demo(
+        args.out,
+        preset=args.preset,
+        size=args.size,
+        train_minutes=args.train_minutes,
+        steps=args.steps,
+        trajectories=None if args.trajectories is None else tuple(args.trajectories),
+        frames=args.frames,
+        seed=args.seed,
+        device=args.device,
+        workers=args.workers,
+        command=args.command_line,
+    )
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.command_line = _command_line(argv)
     try:
         return int(args.handler(args) or 0)
     except ValueError as err:

@@ -13,7 +13,7 @@ broadcast is off: it would overwrite them with rank 0's).
 A run folder holds:
     config.json           the settings (gns train --config accepts it back)
     checkpoints/          step_000001000.pt ...: plain dicts written atomically (torch.save);
-                          best.pt: the weights with the lowest validation rollout MSE so far
+                          best.pt: the best validated weights so far (see `better_validation`)
     train.csv, valid.csv  loss and validation figures per logged step
     tensorboard/          the same figures for TensorBoard
 """
@@ -173,8 +173,8 @@ def latest_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
 
 def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
     """The checkpoint file meant by `path`: the file itself, or in a run folder "latest" (the
-    highest step), "best" (lowest validation rollout MSE) or "auto" (best when the run has
-    one, otherwise latest)."""
+    highest step), "best" (the best validation, see `better_validation`) or "auto" (best when
+    the run has one, otherwise latest)."""
     path = Path(path)
     if not path.is_dir():
         return path
@@ -252,11 +252,15 @@ class RunLog:
 
 
 class Progress:
-    """A one-line progress display on stderr: step, loss, steps/s and time left."""
+    """A one-line progress display on stderr: step, loss, steps/s and time left (the sooner of
+    the remaining steps and the remaining time limit, when there is one)."""
 
-    def __init__(self, total: int, start: int, enabled: bool) -> None:
+    def __init__(
+        self, total: int, start: int, enabled: bool, time_limit: float | None = None
+    ) -> None:
         self.total, self.start, self.enabled = total, start, enabled
         self.started = time.perf_counter()
+        self.time_limit = time_limit
         self.tty = sys.stderr.isatty()
         self.last_shown = 0.0
 
@@ -273,6 +277,8 @@ class Progress:
         self.last_shown = now
         rate = self.rate(step)
         left = (self.total - step) / rate if rate > 0 else float("nan")
+        if self.time_limit is not None:
+            left = min(left, max(0.0, self.time_limit - (now - self.started)))
         eta = time.strftime("%H:%M:%S", time.gmtime(left)) if math.isfinite(left) else "--"
         line = f"step {step}/{self.total}  loss {loss:.4g}  {rate:.2f} steps/s  left {eta}"
         sys.stderr.write(("\r" + line + "   ") if self.tty else line + "\n")
@@ -295,8 +301,8 @@ def validate(
     """One-step position MSE over config.validation_windows windows of `trajectories`, mean
     rollout MSE (config.validation_rollout_steps steps) over the first
     config.validation_rollouts of them, both over non-kinematic particles, and, in a scene with
-    bounds, how far the rollouts' farthest particle got outside the box. Eval mode (no noise,
-    no statistics)."""
+    bounds, how far the rollouts' farthest particle got outside the box and, for reference, how
+    far the ground truth's did over the same frames. Eval mode (no noise, no statistics)."""
     from gns.evaluate import one_step_errors, outside_box
     from gns.metrics import mse_over_time
     from gns.rollout import rollout
@@ -308,7 +314,7 @@ def validate(
         )
         figures["one_step_mse"] = errors["model"]
     history = simulator.config.model.velocity_history + 1
-    rollout_errors, excursions = [], []
+    rollout_errors, excursions, truth_excursions = [], [], []
     bounds = simulator.scene.bounds
     for trajectory in trajectories[: config.validation_rollouts]:
         steps = min(config.validation_rollout_steps, trajectory.num_frames - history)
@@ -320,11 +326,42 @@ def validate(
         rollout_errors.append(float(per_frame.mean()))
         if bounds is not None:
             excursions.append(outside_box(result.predicted_rollout[:, free], bounds))
+            truth_excursions.append(outside_box(result.ground_truth_rollout[:, free], bounds))
     if rollout_errors:
         figures["rollout_mse"] = float(np.mean(rollout_errors))
     if excursions:
         figures["rollout_outside_box"] = max(excursions)
+        figures["truth_outside_box"] = max(truth_excursions)
     return figures
+
+
+def stays_in_box(figures: dict[str, float], radius: float) -> bool:
+    """Whether validation rollouts stayed in the box: no particle farther outside than the
+    ground truth's own farthest (simulators let particles sit a little past the nominal
+    bounds) plus half the connectivity radius. True when the scene has no bounds."""
+    if "rollout_outside_box" not in figures:
+        return True
+    allowed = figures.get("truth_outside_box", 0.0) + 0.5 * radius
+    return figures["rollout_outside_box"] <= allowed
+
+
+def better_validation(
+    figures: dict[str, float], best: dict[str, Any] | None, radius: float
+) -> dict[str, Any] | None:
+    """The record of `figures` ({"step", "value", "in_box"}, step left to the caller) when
+    they beat `best`, else None. Rollouts that stay in the box beat any that leave it (a
+    model whose particles fall through a wall has a low MSE early in training, before the
+    pile spreads); among equals, the lower rollout MSE (one-step MSE without rollouts) wins.
+    A record without "in_box" (written before it existed) counts as having left the box."""
+    key = "rollout_mse" if "rollout_mse" in figures else "one_step_mse"
+    if key not in figures:
+        return None
+    record = {"value": figures[key], "in_box": stays_in_box(figures, radius)}
+    if best is None:
+        return record
+    if (not record["in_box"], record["value"]) < (not best.get("in_box", False), best["value"]):
+        return record
+    return None
 
 
 def _validation_trajectories(path: str | os.PathLike[str], config: TrainConfig) -> list[Any]:
@@ -366,6 +403,7 @@ def train(
     resume: bool = False,
     device: str | torch.device = "auto",
     progress: bool = True,
+    time_limit: float | None = None,
 ) -> LearnedSimulator:
     """Train a GNS on the dataset at `data` (train split; validation on valid) into run_dir.
 
@@ -374,7 +412,15 @@ def train(
     the parameters after N + M steps equal those of an uninterrupted run on the CPU.
     steps overrides config.train.steps (e.g. to resume a finished run for longer). A run
     folder that already has checkpoints is never overwritten without resume.
+    time_limit: wall-clock seconds for this call (loading included); training stops after the
+    first step that ends past it, writes a checkpoint of that step and returns. resume=True then
+    continues from that checkpoint exactly as an uninterrupted run would have.
     """
+    if time_limit is not None and not (
+        isinstance(time_limit, (int, float)) and math.isfinite(time_limit) and time_limit > 0
+    ):
+        raise ValueError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+    started = time.perf_counter()
     run_dir = Path(run_dir)
     rank, world, local_rank = _distributed()
     device = resolve_device(device)
@@ -444,9 +490,8 @@ def train(
     generator = torch.Generator(device=device)
     generator.manual_seed(tc.seed * 1_000_003 + rank)
     start = 0
-    # {"step", "value"} of best.pt: the validation figure that chooses it is the rollout
-    # MSE (what the model is for), or the one-step MSE when validation runs no rollouts.
-    best: dict[str, float] | None = None
+    # {"step", "value", "in_box"} of best.pt, as chosen by better_validation.
+    best: dict[str, Any] | None = None
     if checkpoint is not None:
         saved_world = len(checkpoint["noise_generator"])
         if saved_world != world:
@@ -467,7 +512,19 @@ def train(
             tmp.write_text(json.dumps(to_dict(config), indent=1) + "\n")
     log = RunLog(run_dir, start if checkpoint is not None else None) if leader else None
     valid_trajectories = _validation_trajectories(data, tc) if leader else []
-    meter = Progress(tc.steps, start, enabled=progress and leader)
+    meter = Progress(tc.steps, start, enabled=progress and leader, time_limit=time_limit)
+
+    def out_of_time() -> bool:
+        """Whether to stop at this step; under DDP every rank must stop at the same step, so
+        the ranks agree on it (stop as soon as any rank is out of time)."""
+        if time_limit is None:
+            return False
+        late = time.perf_counter() - started >= time_limit
+        if world == 1:
+            return late
+        flag = torch.tensor(float(late), device=device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        return bool(flag.item())
 
     def weights_state(step: int) -> dict[str, Any]:
         """What load_simulator needs (best.pt holds only this)."""
@@ -505,6 +562,7 @@ def train(
 
     losses: list[float] = []
     step = start
+    stopped_at: int | None = None
     try:
         for step in range(start, tc.steps):
             for group in optimizer.param_groups:
@@ -542,7 +600,8 @@ def train(
             losses.append(value)
             done = step + 1
             meter.show(done, value)
-            if done % tc.log_every == 0 or done == tc.steps:
+            stopping = out_of_time() and done < tc.steps
+            if done % tc.log_every == 0 or done == tc.steps or stopping:
                 mean = torch.tensor(np.mean(losses), dtype=torch.float64, device=device)
                 if world > 1:
                     _all_reduce_sum(mean)
@@ -563,15 +622,23 @@ def train(
                 figures = validate(simulator, valid_trajectories, tc, device)
                 if figures:
                     log.write("valid", done, figures)
-                key = "rollout_mse" if "rollout_mse" in figures else "one_step_mse"
-                if key in figures and (best is None or figures[key] < best["value"]):
-                    best = {"step": done, "value": figures[key]}
+                record = better_validation(figures, best, simulator.scene.radius)
+                if record is not None:
+                    best = {"step": done, **record}
                     # Weights only: best.pt is for rollouts, resuming uses step_*.pt.
                     save_checkpoint(run_dir / "checkpoints" / "best.pt", weights_state(done))
-            if done % tc.checkpoint_every == 0 or done == tc.steps:
+            if done % tc.checkpoint_every == 0 or done == tc.steps or stopping:
                 write_checkpoint(done)
+            if stopping:
+                stopped_at = done
+                break
     finally:
         meter.close()
         if log is not None:
             log.close()
+    if stopped_at is not None and leader:
+        sys.stderr.write(
+            f"time limit of {time_limit:.0f} s reached after step {stopped_at} of {tc.steps}; "
+            f"checkpoint written, `gns train --resume` continues the run\n"
+        )
     return simulator

@@ -1,0 +1,1042 @@
+"""`gns report`: rollout error against wall time per simulated frame, measured on this machine.
+
+    report("runs/sand", "data/sand", split="test", checkpoints=["best", "latest"])
+
+One row per method, each scored on the same frames of the same held-out trajectories:
+  GNS                 each checkpoint given, rolled out from the first C + 1 ground-truth frames;
+                      its time split into graph building, features, model and integration
+                      (gns.rollout times every step) and the device it ran on
+  MPM                 the reference simulator (gns.mpm) that made the data, re-run at its native
+                      settings and at cheaper ones (a coarser grid, a larger CFL number, i.e.
+                      fewer substeps). Only for datasets written by `gns generate`, whose
+                      metadata names the preset, seed and draw of every trajectory; for any other
+                      dataset these rows are left out and the report says why
+  constant velocity   every particle keeps its last velocity (gns.metrics)
+Errors are gns.metrics' (MSE per frame, optimal transport W2^2, MMD^2 with bandwidth 0.1) over
+the non-kinematic particles, at the horizons asked for: the mean over the first h predicted
+frames, then over trajectories. OT and MMD cost O(N^2) or more per frame, so they are evaluated
+on every k-th predicted frame only (k = `every`), and "@h" for them is the mean over those
+evaluated frames among the first h. Time is wall-clock seconds per simulated frame (one frame
+= the dataset's dt), the mean over every frame of every trajectory.
+
+Output folder:
+  report.md, report.html      the report, embedding the figures below
+  table.md, table.csv, table.json
+                              the table (CSV and JSON parse back to the same rows)
+  error_vs_time.png           error at each horizon against ms per frame, one marker per row
+  error_over_time.png         MSE per frame and OT at the evaluated frames, per row
+  rollout_{split}_{i}.gif     ground truth and prediction side by side (and .mp4 with ffmpeg)
+  vtk/                        ground_truth.pvd, prediction.pvd + one .vtp per frame (ParaView)
+  rollouts/{checkpoint}/      the learned rollouts (gns.rollout's npz schema, for `gns eval`)
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import datetime
+import html
+import io
+import json
+import math
+import os
+import platform
+import shutil
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gns.data.atomic import write_bytes_atomic
+from gns.metrics import constant_velocity_rollout, evaluate_rollout
+
+__all__ = [
+    "DEFAULT_EVERY",
+    "DEFAULT_HORIZONS",
+    "MpmVariant",
+    "Row",
+    "machine",
+    "parse_horizons",
+    "parse_mpm_variants",
+    "report",
+    "score",
+    "table_columns",
+]
+
+DEFAULT_HORIZONS: tuple[int | None, ...] = (1, 10, 50, None)
+# OT and MMD on every 10th predicted frame: exact OT takes 0.05 s per frame at 1000 particles
+# when the prediction is close and ~1.7 s at 1400 particles when it is far off (this project's
+# 2-core CPU), so a 155-frame rollout of a poor model costs ~25 s per row and trajectory.
+DEFAULT_EVERY = 10
+METRICS = ("mse", "ot", "mmd")
+TIMING_PARTS = ("graph", "features", "model", "integration")
+
+
+def _say(enabled: bool) -> Callable[[str], None]:
+    """Progress lines on stderr, each with the seconds since the report started."""
+    started = time.perf_counter()
+
+    def say(message: str) -> None:
+        if enabled:
+            elapsed = time.perf_counter() - started
+            sys.stderr.write(f"gns report [{elapsed:5.0f} s] {message}\n")
+            sys.stderr.flush()
+
+    return say
+
+
+# ----------------------------------------------------------------------------------- arguments
+
+
+def parse_horizons(values: Sequence[str | int | None]) -> tuple[int | None, ...]:
+    """Horizons from the command line: positive integers (frames) or "full" (None)."""
+    horizons: list[int | None] = []
+    for value in values:
+        if value is None or str(value).lower() == "full":
+            horizons.append(None)
+            continue
+        try:
+            h = int(value)
+        except (TypeError, ValueError):
+            h = 0
+        if h < 1 or str(h) != str(value).strip():
+            raise ValueError(f"a horizon must be a positive whole number or 'full', got {value!r}")
+        horizons.append(h)
+    if not horizons:
+        raise ValueError("at least one horizon is needed")
+    return tuple(dict.fromkeys(horizons))
+
+
+@dataclass(frozen=True)
+class MpmVariant:
+    """Settings of the reference simulator that differ from the dataset's own: grid (cells
+    per unit length) and cfl (the substep bound); None keeps the native value. A coarser grid
+    keeps the particles where they are (same lattice spacing, so more particles per cell):
+    otherwise particle i would not be particle i and the MSE would compare nothing."""
+
+    grid: int | None = None
+    cfl: float | None = None
+
+    def apply(self, scene: Any) -> Any:
+        grid = scene.grid if self.grid is None else self.grid
+        per_cell = scene.particles_per_cell * (scene.grid / grid) ** 2
+        cfl = scene.cfl if self.cfl is None else self.cfl
+        return dataclasses.replace(scene, grid=grid, particles_per_cell=per_cell, cfl=cfl)
+
+    @property
+    def native(self) -> bool:
+        return self.grid is None and self.cfl is None
+
+
+def parse_mpm_variants(
+    specs: Sequence[str], native_grid: int, native_cfl: float
+) -> list[MpmVariant]:
+    """MPM settings from the command line: "native", "grid=20", "cfl=0.8", "grid=20,cfl=0.8",
+    "auto" (native; 0.6 and 0.5 of the grid; twice the CFL number; 0.6 of the grid with twice
+    the CFL number) or "none" (no MPM rows)."""
+    variants: list[MpmVariant] = []
+    for spec in specs:
+        text = spec.strip().lower()
+        if text == "none":
+            if len(specs) > 1:
+                raise ValueError(f"MPM setting 'none' cannot be combined with others: {specs}")
+            return []
+        if text == "auto":
+            # At half the grid the generated scenes lose particles through the walls (which
+            # sit 0.1 from the domain's edge: two cells at grid 20): kept as the honest limit,
+            # with 0.6 of the grid as the coarse setting that holds.
+            coarse, half = max(2, round(0.6 * native_grid)), max(2, native_grid // 2)
+            variants += [
+                MpmVariant(),
+                MpmVariant(grid=coarse),
+                MpmVariant(grid=half),
+                MpmVariant(cfl=2 * native_cfl),
+                MpmVariant(grid=coarse, cfl=2 * native_cfl),
+            ]
+            continue
+        if text == "native":
+            variants.append(MpmVariant())
+            continue
+        settings: dict[str, Any] = {}
+        for part in text.split(","):
+            key, _, value = (x.strip() for x in part.partition("="))
+            if key == "grid" and value.isdigit() and int(value) >= 2:
+                settings["grid"] = int(value)
+                continue
+            try:
+                number = float(value)
+            except ValueError:
+                number = math.nan
+            if key == "cfl" and math.isfinite(number) and number > 0:
+                settings["cfl"] = number
+            else:
+                raise ValueError(
+                    f"MPM setting {spec!r}: expected 'native', 'auto', 'none' or comma-separated "
+                    "grid=<whole number >= 2> and cfl=<positive number>"
+                )
+        variants.append(MpmVariant(**settings))
+    return list(dict.fromkeys(variants))
+
+
+# ----------------------------------------------------------------------------------- scoring
+
+
+def score(
+    predicted: np.ndarray,
+    truth: np.ndarray,
+    mask: np.ndarray,
+    horizons: Sequence[int | None],
+    every: int,
+) -> dict[str, Any]:
+    """The figures of one rollout, predicted and truth (S, N, D), over the particles in mask
+    (N,) bool: {"mse@h", "ot@h", "mmd@h" for each horizon no longer than S; "mse": (S,)
+    per-frame MSE; "frames", "ot": the evaluated frames and their W2^2}. NaN in `predicted`
+    (a diverged rollout, padded) scores inf, never a finite number."""
+    m = evaluate_rollout(
+        predicted,
+        truth,
+        mask=mask,
+        horizons=horizons,
+        distribution_every=every,
+        nonfinite="inf",
+    )
+    steps = truth.shape[0]
+    out: dict[str, Any] = {}
+    for metric in METRICS:
+        for h in horizons:
+            if h is not None and h > steps:
+                continue
+            key = f"{metric}@{'full' if h is None else h}"
+            if metric == "mse":
+                out[key] = m[key]
+            else:
+                # Frame 0 is always evaluated, so every horizon has at least one frame.
+                evaluated = m[metric] if h is None else m[metric][m["frames"] < h]
+                out[key] = float(np.mean(evaluated))
+    out.update(mse=m["mse"], frames=m["frames"], ot=m["ot"])
+    return out
+
+
+@dataclass
+class Row:
+    """One method of the table. values: metric key -> mean over trajectories (inf: diverged;
+    missing: not computed); split: TIMING_PARTS -> seconds per frame (learned rows only), whose
+    sum is seconds_per_frame; curve, ot_curve: per-frame means for the error-over-time figure."""
+
+    method: str
+    setting: str
+    device: str
+    seconds_per_frame: float | None = None
+    split: dict[str, float] = field(default_factory=dict)
+    values: dict[str, float] = field(default_factory=dict)
+    trajectories: int = 0
+    status: str = "ok"
+    curve: np.ndarray | None = None
+    ot_curve: tuple[np.ndarray, np.ndarray] | None = None
+    short: str = ""  # the label in the figures
+
+    def add_scores(self, scores: Sequence[dict[str, Any]]) -> None:
+        keys = list(dict.fromkeys(k for s in scores for k in s if "@" in k))
+        self.values = {k: float(np.mean([s[k] for s in scores])) for k in keys}
+        self.trajectories = len(scores)
+        self.curve = np.mean([s["mse"] for s in scores], axis=0)
+        self.ot_curve = (scores[0]["frames"], np.mean([s["ot"] for s in scores], axis=0))
+
+
+def table_columns(horizons: Sequence[int | None], steps: int) -> list[str]:
+    """The table's columns; horizons longer than the rollout (steps frames) have none."""
+    keys = [
+        f"{metric}@{'full' if h is None else h}"
+        for metric in METRICS
+        for h in horizons
+        if h is None or h <= steps
+    ]
+    parts = [f"{part}_ms" for part in TIMING_PARTS]
+    return ["method", "setting", "device", "ms_per_frame", *parts, *keys, "trajectories", "status"]
+
+
+def _record(row: Row, columns: Sequence[str]) -> dict[str, Any]:
+    """A row as plain values: numbers in ms or metric units, None where there is no finite
+    number (the status says why)."""
+
+    def finite(value: float | None, scale: float = 1.0) -> float | None:
+        return None if value is None or not math.isfinite(value) else value * scale
+
+    out: dict[str, Any] = {}
+    for column in columns:
+        if column in ("method", "setting", "device", "status"):
+            out[column] = getattr(row, column)
+        elif column == "trajectories":
+            out[column] = row.trajectories
+        elif column == "ms_per_frame":
+            out[column] = finite(row.seconds_per_frame, 1e3)
+        elif column.endswith("_ms"):
+            out[column] = finite(row.split.get(column.removesuffix("_ms")), 1e3)
+        else:
+            out[column] = finite(row.values.get(column))
+    return out
+
+
+# ----------------------------------------------------------------------------------- machine
+
+
+def machine() -> dict[str, Any]:
+    """What the timings were measured on."""
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    cores = os.cpu_count() or 1
+    rayon = os.environ.get("RAYON_NUM_THREADS")
+    info = {
+        "cpu": cpu,
+        "logical_cpus": cores,
+        "torch_threads": torch.get_num_threads(),
+        # The Rust core (MPM, radius graphs) runs on rayon's global pool.
+        "rust_threads": int(rayon) if rayon and rayon.isdigit() and int(rayon) > 0 else cores,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+        # Other work on the machine slows every row; the timings mean little without it.
+        "load_average": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+    }
+    return info
+
+
+# ----------------------------------------------------------------------------------- methods
+
+
+def _kinematic(particle_type: np.ndarray, kinematic_types: Sequence[int]) -> np.ndarray:
+    return np.isin(particle_type, list(kinematic_types))
+
+
+def _device_label(device: Any) -> str:
+    import torch
+
+    if device.type == "cuda":
+        return f"{device} ({torch.cuda.get_device_name(device)})"
+    return f"cpu, {_count(torch.get_num_threads(), 'torch thread')}"
+
+
+def _learned_row(
+    checkpoint: Path,
+    trajectories: list[Any],
+    indices: list[int],
+    history: int,
+    kinematic_types: Sequence[int],
+    horizons: Sequence[int | None],
+    every: int,
+    device: Any,
+    rollouts_dir: Path,
+    split: str,
+    dataset_name: str,
+    say: Callable[[str], None],
+) -> tuple[Row, list[np.ndarray]]:
+    """Roll the checkpoint out on every trajectory (timed), save the rollouts, score them.
+    Returns the row and the predictions (S, N, D) per trajectory, NaN after a divergence."""
+    from gns.rollout import RolloutDiverged, rollout, save_rollout
+    from gns.train import load_checkpoint, load_simulator
+
+    step = load_checkpoint(checkpoint).get("step")
+    simulator = load_simulator(checkpoint, device)
+    c = simulator.config.model.velocity_history
+    if c + 1 != history:
+        raise ValueError(
+            f"{checkpoint} reads C + 1 = {c + 1} input frames but the first checkpoint reads "
+            f"{history}; every row must predict the same frames, so report them separately"
+        )
+    setting = f"{checkpoint.name} (step {step})" if step is not None else checkpoint.name
+    say(f"rolling out {setting} on {len(trajectories)} trajectories")
+    # One short untimed rollout first: the first call pays for lazy initialisation (allocator,
+    # kernels), which is not the cost of simulating a frame.
+    rollout(simulator, trajectories[0], num_steps=min(2, trajectories[0].num_frames - history))
+    scores, predictions, seconds, diverged = [], [], [], []
+    rollouts_dir.mkdir(parents=True, exist_ok=True)
+    for index, trajectory in zip(indices, trajectories, strict=True):
+        info = {"dataset": dataset_name, "split": split, "checkpoint": str(checkpoint)}
+        try:
+            result = rollout(simulator, trajectory, metadata=info)
+        except RolloutDiverged as err:
+            result = err.rollout
+            diverged.append(f"trajectory {index} at step {err.step}")
+        save_rollout(rollouts_dir / f"rollout_{split}_{index}.npz", result)
+        say(f"  trajectory {index}: {result.num_steps} steps rolled out; scoring")
+        truth = trajectory.positions[history:]
+        predicted = np.full(truth.shape, np.nan, dtype=np.float64)
+        predicted[: result.num_steps] = result.predicted_rollout
+        mask = ~_kinematic(trajectory.particle_type, kinematic_types)
+        scores.append(score(predicted, truth, mask, horizons, every))
+        predictions.append(predicted)
+        seconds.append(np.stack([result.timings[part] for part in TIMING_PARTS]))
+    timings = np.concatenate(seconds, axis=1)  # (parts, all steps of all trajectories)
+    row = Row("GNS", setting, _device_label(device), short=f"GNS {setting}")
+    if timings.shape[1]:
+        # Means, not medians: the parts' means add up to the mean total.
+        row.split = {part: float(timings[i].mean()) for i, part in enumerate(TIMING_PARTS)}
+        row.seconds_per_frame = float(timings.sum(axis=0).mean())
+    row.add_scores(scores)
+    if diverged:
+        row.status = "diverged (non-finite positions): " + ", ".join(diverged)
+    return row, predictions
+
+
+def _constant_velocity_row(
+    trajectories: list[Any],
+    history: int,
+    kinematic_types: Sequence[int],
+    horizons: Sequence[int | None],
+    every: int,
+) -> Row:
+    scores, elapsed, frames = [], 0.0, 0
+    for trajectory in trajectories:
+        positions = trajectory.positions
+        truth = positions[history:]
+        kinematic = _kinematic(trajectory.particle_type, kinematic_types)
+        start = time.perf_counter()
+        predicted = constant_velocity_rollout(
+            positions[:history], len(truth), kinematic_mask=kinematic, ground_truth=truth
+        )
+        elapsed += time.perf_counter() - start
+        frames += len(truth)
+        scores.append(score(predicted, truth, ~kinematic, horizons, every))
+    row = Row("constant velocity", "x(t+1) = 2 x(t) - x(t-1)", "cpu, numpy")
+    row.short = row.method
+    row.seconds_per_frame = elapsed / frames
+    row.add_scores(scores)
+    return row
+
+
+def _dataset_name(data: Path, metadata: Any) -> str:
+    generator = _generator(metadata)
+    if generator is None:
+        return data.name
+    return f"{data.name} (gns generate preset {generator['preset']}, seed {generator['seed']})"
+
+
+def _generator(metadata: Any) -> dict[str, Any] | None:
+    entry = dict(metadata.extra).get("generator")
+    return entry if isinstance(entry, dict) and "preset" in entry and "seed" in entry else None
+
+
+def _mpm_rows(
+    metadata: Any,
+    split: str,
+    trajectories: list[Any],
+    indices: list[int],
+    history: int,
+    specs: Sequence[str],
+    kinematic_types: Sequence[int],
+    horizons: Sequence[int | None],
+    every: int,
+    say: Callable[[str], None],
+) -> tuple[list[Row], str | None]:
+    """The reference simulator's rows, or none and the reason."""
+    from gns import mpm
+    from gns.generate import preset_scene
+
+    generator = _generator(metadata)
+    if generator is None:
+        return [], (
+            "MPM rows: this dataset was not written by `gns generate` (its metadata.json has "
+            "no generator entry naming preset, seed and draws), so the simulator that made it "
+            "cannot be re-run on the same scenes"
+        )
+    draws = generator.get("draws", {}).get(split) or [0] * (max(indices) + 1)
+    scenes = []
+    for index, trajectory in zip(indices, trajectories, strict=True):
+        scene, _, lattice_seed = preset_scene(
+            generator["preset"], int(generator["seed"]), split, index, int(draws[index])
+        )
+        start = mpm.particles(scene, lattice_seed)["positions"].astype(np.float32)
+        if start.shape != trajectory.positions[0].shape or not np.allclose(
+            start, trajectory.positions[0], rtol=0, atol=1e-6
+        ):
+            return [], (
+                f"MPM rows: preset {generator['preset']!r} (seed {generator['seed']}) no longer "
+                f"gives the initial particles of {split} trajectory {index} "
+                f"({start.shape[0]} particles vs {trajectory.n_particles}); this dataset was "
+                "made by another version of the presets and cannot be re-run"
+            )
+        scenes.append((scene, lattice_seed))
+    native = scenes[0][0]
+    variants = parse_mpm_variants(specs, native.grid, native.cfl)
+    threads = machine()["rust_threads"]
+    rows = []
+    for variant in variants:
+        changed = [variant.apply(scene) for scene, _ in scenes]
+        grid, cfl = changed[0].grid, changed[0].cfl
+        native = " (native)" if variant.native else ""
+        setting = f"grid {grid} (dx {1 / grid:.3g}), cfl {cfl:g}{native}"
+        device = f"cpu, {_count(threads, 'rust thread')}"
+        row = Row("MPM", setting, device, short=f"MPM grid {grid}, cfl {cfl:g}{native}")
+        say(f"MPM {setting}")
+        scores, seconds, substeps, failures = [], [], [], []
+        for (scene, lattice_seed), new, index, trajectory in zip(
+            scenes, changed, indices, trajectories, strict=True
+        ):
+            start = mpm.particles(scene, lattice_seed)["positions"]
+            moved = mpm.particles(new, lattice_seed)["positions"]
+            if moved.shape != start.shape or not np.allclose(moved, start, rtol=0, atol=1e-9):
+                failures.append(
+                    f"trajectory {index}: grid {new.grid} puts the particles elsewhere "
+                    f"({len(moved)} vs {len(start)}), so MSE would compare different particles"
+                )
+                continue
+            try:
+                result = mpm.simulate(new, trajectory.num_frames, seed=lattice_seed)
+            except ValueError as err:
+                failures.append(f"trajectory {index}: {err}")
+                continue
+            say(f"  trajectory {index}: simulated; scoring")
+            truth = trajectory.positions[history:]
+            mask = ~_kinematic(trajectory.particle_type, kinematic_types)
+            scores.append(score(result.positions[history:], truth, mask, horizons, every))
+            seconds.append(result.seconds)
+            substeps.append(result.substeps)
+        if failures:
+            row.status = "failed: " + "; ".join(failures)
+        else:
+            row.seconds_per_frame = float(np.concatenate(seconds).mean())
+            row.setting += f", {np.concatenate(substeps).mean():.1f} substeps/frame"
+            row.add_scores(scores)
+        rows.append(row)
+    return rows, None
+
+
+# ----------------------------------------------------------------------------------- writing
+
+
+def _format(value: Any) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, float):
+        if value == 0:
+            return "0"
+        return f"{value:.3g}"
+    return str(value)
+
+
+def _markdown_table(rows: Sequence[Row], columns: Sequence[str]) -> str:
+    """The table for humans: the time split in one column, numbers to 3 figures."""
+    metric_columns = [c for c in columns if "@" in c]
+    header = ["method", "setting", "device", "ms/frame", "graph / features / model / integr. ms"]
+    header += [c.replace("@", " @") for c in metric_columns] + ["status"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for row in rows:
+        record = _record(row, columns)
+        split = " / ".join(_format(record[f"{p}_ms"]) for p in TIMING_PARTS) if row.split else ""
+        cells = [row.method, row.setting, row.device, _format(record["ms_per_frame"]), split]
+        for c in metric_columns:
+            value = row.values.get(c)
+            cells.append("inf" if value == math.inf else _format(record[c]))
+        cells.append(row.status.replace("|", "/"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _csv_text(records: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(columns), lineterminator="\n")
+    writer.writeheader()
+    for record in records:
+        writer.writerow(
+            {
+                k: ("" if v is None else repr(v) if isinstance(v, float) else v)
+                for k, v in record.items()
+            }
+        )
+    return buffer.getvalue()
+
+
+@dataclass
+class ReportResult:
+    """What `report` wrote: the folder, the rows, and the files by role."""
+
+    out: Path
+    rows: list[Row]
+    files: dict[str, Path]
+    left_out: list[str]
+
+
+def report(
+    run: str | os.PathLike[str],
+    data: str | os.PathLike[str],
+    *,
+    split: str = "test",
+    checkpoints: Sequence[str] = ("auto",),
+    out: str | os.PathLike[str] | None = None,
+    trajectories: int | None = None,
+    horizons: Sequence[int | None] = DEFAULT_HORIZONS,
+    every: int = DEFAULT_EVERY,
+    mpm: Sequence[str] = ("auto",),
+    animation_frames: int = 120,
+    vtk_every: int | None = None,
+    device: str = "auto",
+    progress: bool = True,
+    command: str | None = None,
+    notes: Sequence[str] = (),
+) -> ReportResult:
+    """Write the report folder (see the module docstring) for the run (folder or checkpoint
+    file) on `split` of the dataset at `data`.
+
+    checkpoints: "auto", "best", "latest" (of the run folder) or checkpoint paths; one row
+    each. trajectories: the first N of the split (default all). horizons: frames (None: the
+    full rollout). every: OT and MMD on every k-th predicted frame. mpm: MPM settings (see
+    parse_mpm_variants). animation_frames: frames in the GIF (0: no animation). vtk_every: VTK
+    frame stride (0: no VTK files; default: at most about 100 frames, as ASCII VTK takes ~30
+    bytes per particle and frame). command, notes: shown in the report.
+    """
+
+    from gns.data import open_dataset
+    from gns.train import resolve_device
+
+    started = time.perf_counter()
+    say = _say(progress)
+    info = machine()  # before the report's own work shows in the load average
+    run, data = Path(run), Path(data)
+    for name, value, low in (
+        ("every", every, 1),
+        ("animation_frames", animation_frames, 0),
+        ("vtk_every", 0 if vtk_every is None else vtk_every, 0),
+    ):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
+    horizons = parse_horizons(list(horizons))
+    if not checkpoints:
+        raise ValueError("at least one checkpoint is needed")
+    dataset = open_dataset(data, split)
+    if trajectories is not None and not (
+        isinstance(trajectories, int) and 1 <= trajectories <= len(dataset)
+    ):
+        raise ValueError(
+            f"trajectories must be between 1 and {len(dataset)} (the {split} split's size), "
+            f"got {trajectories!r}"
+        )
+    indices = list(range(trajectories or len(dataset)))
+    chosen = list(dict.fromkeys(_checkpoint(run, which) for which in checkpoints))
+    out = (
+        Path(out) if out is not None else (run if run.is_dir() else run.parent) / f"report_{split}"
+    )
+    out.mkdir(parents=True, exist_ok=True)
+    torch_device = resolve_device(device)
+    kinematic_types = sorted(dataset.metadata.kinematic_particle_types)
+    items = [dataset[i] for i in indices]
+
+    from gns.train import load_checkpoint
+
+    history = load_checkpoint(chosen[0])["config"]["model"]["velocity_history"] + 1
+    steps = min(t.num_frames for t in items) - history
+    if steps < 1:
+        raise ValueError(
+            f"the {split} trajectories have {steps + history} frames; a rollout needs more than "
+            f"the model's {history} input frames"
+        )
+    if len({t.num_frames for t in items}) > 1:
+        raise ValueError(
+            f"the {split} trajectories differ in length ({sorted({t.num_frames for t in items})}"
+            "); horizon means over them would mix different frames"
+        )
+
+    rows: list[Row] = []
+    predictions: list[np.ndarray] = []
+    stems = [
+        p.stem if [q.stem for q in chosen].count(p.stem) == 1 else f"{k}_{p.stem}"
+        for k, p in enumerate(chosen)
+    ]
+    for path, stem in zip(chosen, stems, strict=True):
+        row, predicted = _learned_row(
+            path,
+            items,
+            indices,
+            history,
+            kinematic_types,
+            horizons,
+            every,
+            torch_device,
+            out / "rollouts" / stem,
+            split,
+            str(data),
+            say,
+        )
+        rows.append(row)
+        if not predictions:
+            predictions = predicted
+    left_out: list[str] = []
+    say("MPM rows")
+    mpm_rows, reason = _mpm_rows(
+        dataset.metadata, split, items, indices, history, mpm, kinematic_types, horizons, every, say
+    )
+    rows += mpm_rows
+    if reason:
+        left_out.append(reason)
+    elif not mpm_rows:
+        left_out.append("MPM rows: none asked for (--mpm none)")
+    else:
+        left_out.append(
+            "MPM with fewer particles: its particles would not be the data's, so MSE (particle "
+            "i against particle i) could not be computed; only coarser grids and fewer "
+            "substeps are compared"
+        )
+    say("constant-velocity baseline")
+    rows.append(_constant_velocity_row(items, history, kinematic_types, horizons, every))
+    columns = table_columns(horizons, steps)
+    dropped = [h for h in horizons if h is not None and h > steps]
+    if dropped:
+        left_out.append(
+            f"horizons {dropped}: longer than the {steps} predicted frames of these trajectories"
+        )
+
+    files = _write_tables(out, rows, columns)
+    say("figures")
+    files.update(_write_figures(out, rows, horizons, steps, history))
+    first = items[0]
+    files.update(
+        _write_media(
+            out,
+            first,
+            indices[0],
+            predictions[0],
+            history,
+            split,
+            dataset.metadata,
+            rows[0].setting,
+            animation_frames,
+            vtk_every,
+            left_out,
+            say,
+        )
+    )
+    context = {
+        "command": command,
+        "run": str(run),
+        "data": str(data),
+        "dataset": _dataset_name(data, dataset.metadata),
+        "split": split,
+        "checkpoints": [str(p) for p in chosen],
+        "trajectories": indices,
+        "particles": sorted({t.n_particles for t in items}),
+        "frames": first.num_frames,
+        "history": history,
+        "horizons": list(horizons),
+        "steps": steps,
+        "every": every,
+        "dt": dataset.metadata.dt,
+        "machine": info,
+        "device": str(torch_device),
+        "seconds": time.perf_counter() - started,
+        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "notes": list(notes),
+        "left_out": left_out,
+    }
+    _write_json(
+        out / "table.json",
+        {"columns": columns, "rows": [_record(r, columns) for r in rows], "context": context},
+    )
+    files["json"] = out / "table.json"
+    markdown = _markdown_report(rows, columns, files, context, out)
+    write_bytes_atomic(out / "report.md", markdown.encode("utf-8"))
+    write_bytes_atomic(
+        out / "report.html", _html_report(rows, columns, files, context, out).encode("utf-8")
+    )
+    files.update(markdown=out / "report.md", html=out / "report.html")
+    say(f"wrote {out / 'report.md'} in {context['seconds']:.0f} s")
+    return ReportResult(out, rows, files, left_out)
+
+
+def _checkpoint(run: Path, which: str) -> Path:
+    """A run's "auto" / "best" / "latest" checkpoint, or a checkpoint file's path."""
+    from gns.train import choose_checkpoint
+
+    path = choose_checkpoint(run, which) if which in ("auto", "best", "latest") else Path(which)
+    if not path.is_file():
+        raise ValueError(
+            f"checkpoint {which!r}: {path} does not exist (expected auto, best, latest or a file)"
+        )
+    return path
+
+
+def _write_json(path: Path, payload: Any) -> None:
+    # allow_nan=False: strict JSON; non-finite numbers were made None in _record.
+    write_bytes_atomic(
+        path, (json.dumps(payload, indent=1, allow_nan=False) + "\n").encode("utf-8")
+    )
+
+
+def _write_tables(out: Path, rows: Sequence[Row], columns: Sequence[str]) -> dict[str, Path]:
+    records = [_record(row, columns) for row in rows]
+    write_bytes_atomic(out / "table.csv", _csv_text(records, columns).encode("utf-8"))
+    write_bytes_atomic(out / "table.md", _markdown_table(rows, columns).encode("utf-8"))
+    return {"csv": out / "table.csv", "table": out / "table.md"}
+
+
+def _write_figures(
+    out: Path,
+    rows: Sequence[Row],
+    horizons: Sequence[int | None],
+    steps: int,
+    history: int,
+) -> dict[str, Path]:
+    from gns.plots import Series, error_over_time, error_vs_time
+
+    shown = [str(h) if h is not None else "full" for h in horizons if h is None or h <= steps]
+    series = [
+        Series(
+            r.short,
+            r.seconds_per_frame,
+            r.values,
+            None if r.curve is None else (np.arange(len(r.curve)), r.curve),
+            r.ot_curve,
+        )
+        for r in rows
+    ]
+    error_vs_time(series, METRICS, shown, out / "error_vs_time.png", "error against run time")
+    error_over_time(series, out / "error_over_time.png", first_frame=history)
+    return {
+        "error_vs_time": out / "error_vs_time.png",
+        "error_over_time": out / "error_over_time.png",
+    }
+
+
+def _write_media(
+    out: Path,
+    trajectory: Any,
+    index: int,
+    predicted: np.ndarray,
+    history: int,
+    split: str,
+    metadata: Any,
+    setting: str,
+    animation_frames: int,
+    vtk_every: int,
+    left_out: list[str],
+    say: Callable[[str], None],
+) -> dict[str, Path]:
+    """The animation and VTK files of one trajectory and the first checkpoint's prediction."""
+    from gns.plots import animation
+    from gns.vtk import write_series
+
+    files: dict[str, Path] = {}
+    truth = trajectory.positions
+    whole = np.concatenate([truth[:history], predicted]).astype(np.float32)
+    if trajectory.dim not in (2, 3):
+        left_out.append(f"animation and VTK: {trajectory.dim}D positions")
+        return files
+    if animation_frames:
+        say("animation")
+        gif = out / f"rollout_{split}_{index}.gif"
+        mp4 = out / f"rollout_{split}_{index}.mp4"
+        projection = " (x-y projection)" if trajectory.dim == 3 else ""
+        why_not = animation(
+            truth,
+            whole,
+            trajectory.particle_type,
+            gif,
+            bounds=metadata.bounds,
+            titles=(f"ground truth{projection}", f"GNS {setting}{projection}"),
+            first_predicted=history,
+            dt=metadata.dt,
+            max_frames=animation_frames,
+            mp4_path=mp4,
+        )
+        files["gif"] = gif
+        if why_not is None:
+            files["mp4"] = mp4
+        else:
+            left_out.append(f"MP4 animation: {why_not} (the GIF has the same frames)")
+    else:
+        left_out.append("animation: not asked for")
+    if vtk_every is None:
+        vtk_every = max(1, math.ceil(len(truth) / 100))
+    if vtk_every:
+        say(f"VTK files (every {vtk_every} frame{'s' * (vtk_every > 1)})")
+        folder = out / "vtk"
+        shutil.rmtree(folder, ignore_errors=True)  # frames of an earlier report would linger
+        finite = int(np.isfinite(whole).all(axis=(1, 2)).sum())
+        types = {"particle_type": trajectory.particle_type.astype(np.int32)}
+        files["vtk_truth"] = write_series(
+            folder, "ground_truth", truth, dt=metadata.dt, every=vtk_every, point_data=types
+        )
+        error = np.linalg.norm(whole[:finite] - truth[:finite], axis=-1).astype(np.float32)
+        files["vtk_prediction"] = write_series(
+            folder,
+            "prediction",
+            whole[:finite],
+            dt=metadata.dt,
+            every=vtk_every,
+            point_data=types,
+            frame_data={"error": error},
+        )
+    else:
+        left_out.append("VTK files: not asked for")
+    return files
+
+
+def _relative(path: Path, out: Path) -> str:
+    return os.path.relpath(path, out)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'s' if n != 1 else ''}"
+
+
+def _context_lines(context: dict[str, Any]) -> list[str]:
+    m = context["machine"]
+    return [
+        f"- Command: `{context['command']}`" if context["command"] else "- Command: (Python API)",
+        f"- Date: {context['date']}; report made in {context['seconds']:.0f} s",
+        f"- Machine: {m['cpu']}, {m['logical_cpus']} logical CPUs, {m['platform']}; "
+        f"torch {m['torch']} with {_count(m['torch_threads'], 'thread')}, the Rust core (MPM) "
+        f"with {_count(m['rust_threads'], 'thread')}"
+        + (f"; GPU {m['cuda']}" if m["cuda"] else "")
+        + (
+            f"; load average {m['load_average']:.1f} when the report started (other work on "
+            "the machine slows every row)"
+            if m["load_average"] is not None
+            else ""
+        ),
+        f"- Device of the learned model: {context['device']}",
+        f"- Run: `{context['run']}`; checkpoints: "
+        + ", ".join(f"`{c}`" for c in context["checkpoints"]),
+        f"- Data: `{context['data']}`, split {context['split']}, trajectories "
+        f"{context['trajectories']}, {', '.join(map(str, context['particles']))} particles, "
+        f"{context['frames']} frames each (dt {context['dt']:g} s)",
+    ]
+
+
+def _method_lines(context: dict[str, Any]) -> list[str]:
+    h, s, k = context["history"], context["steps"], context["every"]
+    return [
+        f"- Every row predicts frames {h} to {h + s - 1} ({s} frames) of each trajectory; the "
+        f"learned model and the baseline start from the {h} ground-truth frames before them. "
+        "MPM rows are re-run from frame 0 with the scene and seed that made the data, so "
+        "their error at a frame includes their own drift since frame 0 (the simulator's state "
+        "holds more than positions and cannot be restarted from the data).",
+        "- MSE: squared position error, mean over the non-kinematic particles and the axes, "
+        "then over the first h predicted frames (`@h`; `@full`: all), then over trajectories.",
+        f"- OT (W2^2, exact assignment up to 2048 points) and MMD^2 (Gaussian kernel, "
+        f"bandwidth 0.1): evaluated on one predicted frame in k = {k} only (frames 1, "
+        f"{k + 1}, {2 * k + 1}, ... of the rollout), as they cost O(N^2) or more per frame; "
+        "`@h` is the mean over the evaluated frames among the first h ("
+        + ", ".join(
+            f"@{'full' if h is None else h}: {len(range(0, s if h is None else min(h, s), k))}"
+            for h in context["horizons"]
+            if h is None or h <= s
+        )
+        + " frames).",
+        "- Time: wall-clock per simulated frame, mean over every frame of every trajectory. "
+        "Learned rows: graph building + features + model + integration (the split adds up to "
+        "the total; one untimed warm-up rollout first). MPM: the whole frame (substeps, "
+        "transfers). Constant velocity: the numpy extrapolation.",
+        "- A value of 0 is exact (the deterministic simulator reproducing its own data); "
+        "`inf` means the rollout diverged; `n/a`: not computed (see status).",
+    ]
+
+
+def _title(context: dict[str, Any]) -> str:
+    return f"Error against run time: {context['dataset']}, {context['split']} split"
+
+
+def _markdown_report(
+    rows: Sequence[Row],
+    columns: Sequence[str],
+    files: dict[str, Path],
+    context: dict[str, Any],
+    out: Path,
+) -> str:
+    lines = [
+        f"# {_title(context)}",
+        "",
+        *_context_lines(context),
+        "",
+        f"![error against run time]({_relative(files['error_vs_time'], out)})",
+        "",
+        _markdown_table(rows, columns),
+        "## How to read it",
+        "",
+        *_method_lines(context),
+        "",
+        "## Error over time",
+        "",
+        f"![error over time]({_relative(files['error_over_time'], out)})",
+        "",
+    ]
+    if "gif" in files:
+        lines += [
+            "## Rollout",
+            "",
+            f"![ground truth and prediction]({_relative(files['gif'], out)})",
+            "",
+        ]
+        if "mp4" in files:
+            lines += [f"[MP4]({_relative(files['mp4'], out)})", ""]
+    if "vtk_truth" in files:
+        lines += [
+            "## ParaView",
+            "",
+            f"Open `{_relative(files['vtk_truth'], out)}` and "
+            f"`{_relative(files['vtk_prediction'], out)}` (time series of VTK PolyData files, "
+            "with `particle_type` and, for the prediction, `error`, the distance to the ground "
+            "truth).",
+            "",
+        ]
+    if context["notes"]:
+        lines += ["## Notes", "", *[f"- {n}" for n in context["notes"]], ""]
+    lines += ["## Left out", ""]
+    lines += [f"- {item}" for item in context["left_out"]] or ["- nothing"]
+    return "\n".join(lines) + "\n"
+
+
+def _html_report(
+    rows: Sequence[Row],
+    columns: Sequence[str],
+    files: dict[str, Path],
+    context: dict[str, Any],
+    out: Path,
+) -> str:
+    e = html.escape
+
+    def items(lines: list[str]) -> str:
+        return (
+            "<ul>" + "".join(f"<li>{e(line.removeprefix('- '))}</li>" for line in lines) + "</ul>"
+        )
+
+    table = _markdown_table(rows, columns).splitlines()
+    head = [c.strip() for c in table[0].strip("|").split("|")]
+    body = [[c.strip() for c in line.strip("|").split("|")] for line in table[2:]]
+    cells = "<tr>" + "".join(f"<th>{e(c)}</th>" for c in head) + "</tr>"
+    for line in body:
+        cells += "<tr>" + "".join(f"<td>{e(c)}</td>" for c in line) + "</tr>"
+    images = "".join(
+        f'<p><img src="{e(_relative(files[key], out))}" alt="{key}" style="max-width:100%"></p>'
+        for key in ("error_over_time", "gif")
+        if key in files
+    )
+    return (
+        "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
+        f"<title>gns report: {e(context['dataset'])}</title>"
+        "<style>body{font-family:sans-serif;max-width:1200px;margin:auto}"
+        "table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;"
+        "padding:3px 6px}</style></head><body>"
+        f"<h1>{e(_title(context))}</h1>"
+        + items(_context_lines(context))
+        + f'<p><img src="{e(_relative(files["error_vs_time"], out))}" alt="error against run time" '
+        'style="max-width:100%"></p>'
+        + f"<table>{cells}</table><h2>How to read it</h2>"
+        + items(_method_lines(context))
+        + images
+        + (("<h2>Notes</h2>" + items(context["notes"])) if context["notes"] else "")
+        + "<h2>Left out</h2>"
+        + items(context["left_out"] or ["nothing"])
+        + "</body></html>\n"
+    )

@@ -1,0 +1,214 @@
+"""`gns demo` end to end at the tiny size (every output file exists and decodes, the tables
+parse, every number is finite, a second run resumes), and training's wall-clock time limit
+(stops with a checkpoint; resuming from it equals an uninterrupted run)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+import shutil
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import torch
+from data_helpers import metadata_dict, random_walk, write_metadata
+from gns.cli import main
+from gns.config import Config, ModelConfig, TrainConfig
+from gns.data import open_dataset
+from gns.data.h5 import write_h5
+from gns.demo import demo
+from gns.train import latest_checkpoint, train
+from PIL import Image
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def read_vtp(path):
+    """NumberOfPoints and the (N, 3) points of a VTK XML PolyData file, parsed here."""
+    piece = ET.parse(path).getroot().find("./PolyData/Piece")
+    count = int(piece.get("NumberOfPoints"))
+    points = np.array(piece.find("./Points/DataArray").text.split(), dtype=float)
+    return count, points.reshape(-1, 3)
+
+
+def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--size", "tiny", "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    for phase in ("[1/3] generating", "[2/3] training", "[3/3] rolling out"):
+        assert phase in err
+    report = out / "report"
+    test = open_dataset(out / "data", "test")
+    (trajectory,) = list(test)
+    n, frames = trajectory.n_particles, trajectory.num_frames
+
+    expected = [
+        "report.md",
+        "report.html",
+        "table.md",
+        "table.csv",
+        "table.json",
+        "error_vs_time.png",
+        "error_over_time.png",
+        "rollout_test_0.gif",
+        "vtk/ground_truth.pvd",
+        "vtk/prediction.pvd",
+        "rollouts/step_000000004/rollout_test_0.npz",
+    ]
+    for name in expected:
+        assert (report / name).is_file() and (report / name).stat().st_size > 0, name
+
+    for name in ("error_vs_time.png", "error_over_time.png"):
+        assert (report / name).read_bytes()[:8] == PNG_SIGNATURE
+        with Image.open(report / name) as image:
+            assert image.format == "PNG" and min(image.size) > 100
+            image.load()
+    with Image.open(report / "rollout_test_0.gif") as gif:
+        assert gif.format == "GIF" and gif.n_frames == frames  # fewer frames than the cap
+        gif.seek(gif.n_frames - 1)
+        gif.load()
+
+    for series in ("ground_truth", "prediction"):
+        entries = ET.parse(report / f"vtk/{series}.pvd").getroot().findall("./Collection/DataSet")
+        assert len(entries) == frames
+        for entry in entries:
+            count, points = read_vtp(report / "vtk" / entry.get("file"))
+            assert count == n and points.shape == (n, 3) and np.isfinite(points).all()
+    _, first = read_vtp(report / "vtk/ground_truth_000000.vtp")
+    np.testing.assert_allclose(first[:, :2], trajectory.positions[0], rtol=1e-6)
+
+    payload = json.loads((report / "table.json").read_text())
+    methods = [row["method"] for row in payload["rows"]]
+    # GNS rows (latest, and best.pt when validation chose another step), five MPM settings
+    # (auto: native, 0.6 and 0.5 of the grid, twice the CFL number, both), the baseline.
+    assert set(methods[:-6]) == {"GNS"} and methods[-6:] == ["MPM"] * 5 + ["constant velocity"]
+    with open(report / "table.csv", newline="") as f:
+        records = list(csv.DictReader(f))
+    assert len(records) == len(payload["rows"])
+    numbers = [c for c in payload["columns"] if c not in ("method", "setting", "device", "status")]
+    for record, row in zip(records, payload["rows"], strict=True):
+        if row["status"].startswith("failed: "):
+            # A cheaper simulator setting that did not hold: said so, and no numbers.
+            assert row["method"] == "MPM" and row["ms_per_frame"] is None
+            continue
+        assert row["status"] == "ok"
+        for column in numbers:
+            if column.endswith("_ms") and row["method"] != "GNS":
+                assert record[column] == "" and row[column] is None  # no time split
+                continue
+            value = float(record[column])
+            assert math.isfinite(value) and value >= 0 and value == row[column], column
+        if row["method"] == "GNS":
+            parts = sum(row[f"{p}_ms"] for p in ("graph", "features", "model", "integration"))
+            assert parts == pytest.approx(row["ms_per_frame"], rel=1e-9)
+    native = payload["rows"][-6]
+    assert "native" in native["setting"] and native["status"] == "ok"
+    assert all(native[c] == 0.0 for c in numbers if "@" in c)
+    assert [row["status"] for row in payload["rows"] if row["method"] != "MPM"] == ["ok"] * (
+        len(methods) - 5
+    )
+
+    markdown = (report / "report.md").read_text()
+    for link in re.findall(r"\]\(([^)]+)\)", markdown):
+        assert (report / link).is_file(), link
+    assert "gns demo --out" in markdown and "logical CPUs" in markdown
+    if shutil.which("ffmpeg") is None:
+        assert "MP4 animation: no ffmpeg executable on PATH" in markdown
+    else:
+        assert (report / "rollout_test_0.mp4").stat().st_size > 0
+    html = (report / "report.html").read_text()
+    assert html.count("<tr>") == 1 + len(payload["rows"])
+
+    # A second run reuses the dataset and the finished training and rewrites the report.
+    trained = (out / "training.json").read_text()
+    assert main(["demo", "--out", str(out), "--size", "tiny", "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "reusing the dataset" in err and "training finished earlier (step 4)" in err
+    assert (out / "training.json").read_text() == trained
+    # Other arguments in the same folder are refused, not mixed in.
+    with pytest.raises(ValueError, match="other arguments"):
+        demo(out, size="tiny", seed=1)
+
+
+def test_demo_rejects_unknown_sizes_and_bad_overrides(tmp_path):
+    with pytest.raises(ValueError, match="unknown preset 'lava'"):
+        demo(tmp_path / "p", preset="lava")
+    with pytest.raises(ValueError, match="unknown demo size 'huge'"):
+        demo(tmp_path / "a", size="huge")
+    with pytest.raises(ValueError, match="three counts >= 1"):
+        demo(tmp_path / "b", size="tiny", trajectories=(2, 0, 1))
+    with pytest.raises(ValueError, match="train_minutes must be positive, got 0"):
+        demo(tmp_path / "c", size="tiny", train_minutes=0)
+    with pytest.raises(ValueError, match="frames must be a whole number >= 8, got 7"):
+        demo(tmp_path / "d", size="tiny", frames=7)
+    assert not any(tmp_path.iterdir())  # nothing written before the arguments are checked
+
+
+# ---------------------------------------------------------------------------- time limit
+
+SETTINGS = Config(
+    model=ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=2, precision="fp32"),
+    train=TrainConfig(
+        steps=5, log_every=2, validate_every=0, checkpoint_every=100, learning_rate=1e-3
+    ),
+)
+
+
+@pytest.fixture
+def dataset(tmp_path):
+    rng = np.random.default_rng(0)
+    items = [random_walk(rng, 12, 16, key=k) for k in range(3)]
+    write_metadata(tmp_path / "data", metadata_dict(sequence_length=11))
+    write_h5(tmp_path / "data/train.h5", items)
+    return tmp_path / "data"
+
+
+def weights(simulator):
+    return {k: v.detach().clone() for k, v in simulator.state_dict().items()}
+
+
+def test_time_limit_stops_with_a_checkpoint_and_resuming_equals_an_uninterrupted_run(
+    dataset, tmp_path, capsys
+):
+    # A limit that has passed after the first step: training stops there.
+    train(dataset, tmp_path / "limited", SETTINGS, device="cpu", progress=False, time_limit=1e-9)
+    assert "time limit" in capsys.readouterr().err
+    checkpoint = latest_checkpoint(tmp_path / "limited")
+    assert checkpoint.name == "step_000000001.pt"
+    assert len(list((tmp_path / "limited/checkpoints").glob("step_*.pt"))) == 1
+    resumed = train(dataset, tmp_path / "limited", None, resume=True, device="cpu", progress=False)
+    whole = train(dataset, tmp_path / "whole", SETTINGS, device="cpu", progress=False)
+    for key, value in weights(whole).items():
+        assert torch.equal(weights(resumed)[key], value), key
+    assert latest_checkpoint(tmp_path / "limited").name == "step_000000005.pt"
+
+
+def test_a_generous_time_limit_changes_nothing(dataset, tmp_path):
+    limited = train(
+        dataset, tmp_path / "a", SETTINGS, device="cpu", progress=False, time_limit=3600
+    )
+    plain = train(dataset, tmp_path / "b", SETTINGS, device="cpu", progress=False)
+    for key, value in weights(plain).items():
+        assert torch.equal(weights(limited)[key], value), key
+
+
+@pytest.mark.parametrize("limit", [0, -1.0, math.inf, math.nan])
+def test_bad_time_limits_raise_value_error(dataset, tmp_path, limit):
+    with pytest.raises(ValueError, match=f"time_limit must be a positive number.*{limit}"):
+        train(dataset, tmp_path / "run", SETTINGS, device="cpu", progress=False, time_limit=limit)
+
+
+def test_cli_time_limit_is_in_minutes(dataset, tmp_path, monkeypatch):
+    import gns.train
+
+    seen = {}
+    monkeypatch.setattr(gns.train, "train", lambda *a, **kw: seen.update(kw))
+    assert (
+        main(["train", "--data", str(dataset), "--out", str(tmp_path), "--time-limit", "1.5"]) == 0
+    )
+    assert seen["time_limit"] == 90.0
