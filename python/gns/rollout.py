@@ -259,7 +259,9 @@ def rollout(
     c = simulator.config.model.velocity_history
     history = c + 1
     particle_type = trajectory.particle_type
-    types = torch.from_numpy(particle_type)
+    # A copy: trajectories may hold read-only arrays (memory-mapped or shared), which torch
+    # refuses to wrap without a warning.
+    types = torch.from_numpy(np.array(particle_type))
     kinematic = simulator.kinematic_mask(types).numpy()
     num_kinematic = int(kinematic.sum())
     num_steps = _check_num_steps(num_steps, trajectory, history, num_kinematic)
