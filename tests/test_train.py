@@ -83,13 +83,16 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def test_resume_continues_exactly(tmp_path):
+@pytest.mark.parametrize("mirror_axes", [(), (0, 1)])
+def test_resume_continues_exactly(tmp_path, mirror_axes):
     data = make_dataset(tmp_path / "data")
     # 6 trajectories, 2 in memory, 6 windows each at batch 2: chunks change every 6 steps, and
-    # the 21 steps cross epochs, so the sampler, noise stream and optimiser state all matter.
-    straight = train(data, tmp_path / "a", config(21), progress=False)
-    train(data, tmp_path / "b", config(8), progress=False)
-    resumed = train(data, tmp_path / "b", config(21), resume=True, progress=False)
+    # the 21 steps cross epochs, so the sampler, noise stream and optimiser state all matter
+    # (and with mirroring, which windows are mirrored).
+    cfg = lambda steps: config(steps, mirror_axes=mirror_axes)  # noqa: E731
+    straight = train(data, tmp_path / "a", cfg(21), progress=False)
+    train(data, tmp_path / "b", cfg(8), progress=False)
+    resumed = train(data, tmp_path / "b", cfg(21), resume=True, progress=False)
     a, b = parameters(straight), parameters(resumed)
     assert a.keys() == b.keys()
     for key in a:
@@ -324,3 +327,10 @@ def test_validation_prefers_rollouts_that_stay_in_the_box():
         "in_box": True,
     }
     assert better_validation({}, None, radius) is None
+
+
+def test_mirror_axes_change_what_training_sees(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    plain = parameters(train(data, tmp_path / "a", config(6), progress=False))
+    mirrored = parameters(train(data, tmp_path / "b", config(6, mirror_axes=(0,)), progress=False))
+    assert any(not torch.equal(plain[k], mirrored[k]) for k in plain)

@@ -207,7 +207,10 @@ class TrainConfig:
         rollouts of validation_rollout_steps steps on validation_rollouts trajectories.
     checkpoint_every: steps between checkpoints (one is always written at the end);
         keep_checkpoints: how many of the newest to keep.
-    seed: data order, noise and initial weights.
+    seed: data order, noise, mirroring and initial weights.
+    mirror_axes: axes along which each training window is mirrored with probability 1/2 (about
+        the box's centre; gns.augment), for scenes symmetric along them; none by default, as
+        in the paper.
     """
 
     steps: int = 20_000_000
@@ -225,6 +228,7 @@ class TrainConfig:
     checkpoint_every: int = 10_000
     keep_checkpoints: int = 3
     seed: int = 0
+    mirror_axes: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         _positive(
@@ -252,6 +256,12 @@ class TrainConfig:
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if len(set(self.mirror_axes)) != len(self.mirror_axes) or any(
+            a < 0 for a in self.mirror_axes
+        ):
+            raise ValueError(
+                f"TrainConfig.mirror_axes must be distinct axes >= 0, got {list(self.mirror_axes)}"
+            )
 
     def learning_rate_at(self, step: int) -> float:
         """The learning rate of gradient step `step` (0-based)."""

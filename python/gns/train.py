@@ -37,6 +37,7 @@ import torch
 import torch.distributed as dist
 from torch import Tensor, nn
 
+from gns.augment import check_mirror_axes, mirror_batch
 from gns.config import Config, TrainConfig, from_dict, to_dict
 from gns.data import open_dataset
 from gns.data.atomic import atomic_file
@@ -321,7 +322,9 @@ def validate(
         if steps < 1:
             continue
         result = rollout(simulator, trajectory, num_steps=steps, device=device)
-        free = ~simulator.kinematic_mask(torch.from_numpy(trajectory.particle_type)).numpy()
+        # A copy: dataset arrays may be read-only, which torch.from_numpy warns about.
+        types = torch.from_numpy(np.array(trajectory.particle_type))
+        free = ~simulator.kinematic_mask(types).numpy()
         per_frame = mse_over_time(result.predicted_rollout, result.ground_truth_rollout, free)
         rollout_errors.append(float(per_frame.mean()))
         if bounds is not None:
@@ -468,6 +471,9 @@ def train(
         simulator = LearnedSimulator(scene, config, statistics=dataset.metadata)
     simulator.to(device).train()
     statistics = _statistics_dict(dataset.metadata)
+    check_mirror_axes(
+        tc.mirror_axes, simulator.scene.dim, dataset.metadata.acc_mean, dataset.metadata.acc_std
+    )
 
     step_module: nn.Module = TrainingStep(simulator)
     if world > 1:
@@ -567,7 +573,12 @@ def train(
         for step in range(start, tc.steps):
             for group in optimizer.param_groups:
                 group["lr"] = tc.learning_rate_at(step)
-            t = batch_tensors(sampler.next_batch(tc.batch_size, tc.batch_particles), device)
+            batch = sampler.next_batch(tc.batch_size, tc.batch_particles)
+            if tc.mirror_axes:
+                # Drawn from (seed, step, rank) alone, so a resumed run mirrors the same windows.
+                rng = np.random.default_rng([tc.seed, step, rank])
+                batch = mirror_batch(batch, tc.mirror_axes, simulator.scene.bounds, rng)
+            t = batch_tensors(batch, device)
             noise = simulator.sample_noise(
                 t["position_sequence"],  # type: ignore[arg-type]
                 t["particle_type"],  # type: ignore[arg-type]
