@@ -122,6 +122,13 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
     assert "ms/step" in printed and "graph" in printed and "model" in printed
     saved = load_rollout(run / "rollouts/test/rollout_test_1.npz")
     assert saved.num_steps == 14 - 6 and (run / "rollouts/test/rollout_test_1.pkl").exists()
+    # --float64 rolls out in float64, close to the float32 rollout over these few steps.
+    out64 = tmp_path / "r64"
+    args = ["rollout", "--run", str(run), "--data", str(data), "--float64", "--out", str(out64)]
+    assert main(args) == 0
+    wide = load_rollout(out64 / "rollout_test_1.npz").predicted_rollout
+    assert wide.dtype == np.float64
+    np.testing.assert_allclose(wide, saved.predicted_rollout, atol=1e-5)
     assert main(["eval", "--run", str(run), "--data", str(data), "--every", "4"]) == 0
     report = json.loads((run / "eval_test.json").read_text())
     assert len(report["trajectories"]) == 2

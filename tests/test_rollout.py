@@ -4,6 +4,7 @@ short rollout on the real sand data."""
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import zipfile
 from pathlib import Path
@@ -442,3 +443,52 @@ def test_ten_steps_on_the_real_sand_data():
     np.testing.assert_array_equal(r.ground_truth_rollout, traj.positions[C + 1 : C + 11])
     assert r.step_context is not None and r.step_context.shape == (C + 10, 1)
     assert all(np.isfinite(s).all() and s.shape == (10,) for s in r.timings.values())
+
+
+def test_particles_far_outside_the_domain_stop_the_rollout_naming_them():
+    sim = simulator()
+    traj = trajectory(frames=14)
+    clean = rollout(sim, traj)
+    calls = 0
+
+    def fling_after_two(module, inputs, output):
+        # Normalised accelerations of 1e30 from the third step on: the two particles land far
+        # outside the box, their positions still finite.
+        nonlocal calls
+        calls += 1
+        if calls > 2:
+            output = output.clone()
+            output[[7, 11]] = 1e30
+        return output
+
+    handle = sim.model.decoder.register_forward_hook(fling_after_two)
+    try:
+        with pytest.raises(RolloutDiverged, match=r"step 2 .*2 of 30 particles are more than") as e:
+            rollout(sim, traj)
+        # Without the check the same rollout runs on, with garbage positions.
+        free_running = rollout(sim, traj, escape_distance=None)
+    finally:
+        handle.remove()
+    assert e.value.step == 2 and e.value.num_nonfinite == 0
+    np.testing.assert_array_equal(e.value.particles, [7, 11])
+    assert "particles 7, 11" in str(e.value)
+    np.testing.assert_array_equal(e.value.rollout.predicted_rollout, clean.predicted_rollout[:2])
+    assert np.abs(free_running.predicted_rollout[2, [7, 11]]).max() > 1e6
+    for bad in (0, -1.0, float("nan"), float("inf"), "1"):
+        with pytest.raises(ValueError, match="escape_distance must be a positive number"):
+            rollout(sim, traj, escape_distance=bad)
+
+
+def test_a_small_excursion_is_not_divergence_and_float64_rollouts_agree():
+    sim = simulator()
+    traj = trajectory(frames=14)
+    # Move everything half a box length outside: within the default one box length.
+    lo = np.array([b[0] for b in BOX], dtype=np.float32)
+    hi = np.array([b[1] for b in BOX], dtype=np.float32)
+    shifted = dataclasses.replace(traj, positions=traj.positions + 0.5 * (hi - lo)[0])
+    rollout(sim, shifted)
+    single = rollout(sim, traj)
+    double = rollout(sim.double(), traj)
+    assert double.predicted_rollout.dtype == np.float64
+    assert single.predicted_rollout.dtype == np.float32
+    np.testing.assert_allclose(double.predicted_rollout, single.predicted_rollout, atol=1e-5)

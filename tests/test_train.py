@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import os
 import subprocess
 import sys
@@ -334,3 +335,18 @@ def test_mirror_axes_change_what_training_sees(tmp_path):
     plain = parameters(train(data, tmp_path / "a", config(6), progress=False))
     mirrored = parameters(train(data, tmp_path / "b", config(6, mirror_axes=(0,)), progress=False))
     assert any(not torch.equal(plain[k], mirrored[k]) for k in plain)
+
+
+def test_a_diverging_validation_rollout_is_the_worst_figure_not_a_crash(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    train(data, tmp_path / "run", config(2), progress=False)
+    sim = load_simulator(tmp_path / "run")
+    torch.nn.init.constant_(sim.model.decoder[-1].bias, float("nan"))
+    trajectories = list(open_dataset(data, "valid"))
+    settings = config(2, validation_windows=0, validation_rollouts=2, validation_rollout_steps=4)
+    figures = validate(sim, trajectories, settings.train, torch.device("cpu"))
+    assert figures["rollout_mse"] == math.inf and figures["rollout_outside_box"] == math.inf
+    # The ground truth's own excursion is still measured (finite), and such a validation is
+    # never preferred to one that stayed finite.
+    assert math.isfinite(figures["truth_outside_box"])
+    assert better_validation(figures, {"value": 1.0, "in_box": False}, 0.1) is None

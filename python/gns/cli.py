@@ -52,6 +52,18 @@ def build_parser() -> argparse.ArgumentParser:
     roll.add_argument("--trajectories", type=int, nargs="*", help="indices (default: all)")
     roll.add_argument("--steps", type=int, help="frames to predict (default: all there are)")
     roll.add_argument("--deepmind", action="store_true", help="also write DeepMind pickles")
+    roll.add_argument(
+        "--float64",
+        action="store_true",
+        help="run the model and positions in float64 (to compare drift with float32)",
+    )
+    roll.add_argument(
+        "--escape-distance",
+        type=float,
+        default=1.0,
+        help="stop a rollout when a particle is farther outside the domain than this many "
+        "times its longest side (default 1)",
+    )
     add_checkpoint_option(roll)
     add_runtime_options(roll)
     roll.set_defaults(handler=run_rollout)
@@ -231,6 +243,8 @@ def run_rollout(args: argparse.Namespace) -> int:
     checkpoint = choose_checkpoint(args.run, args.checkpoint)
     print(f"checkpoint {checkpoint}")
     simulator = load_simulator(checkpoint, device)
+    if args.float64:
+        simulator.double()
     dataset = open_dataset(args.data, args.split)
     out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "rollouts" / args.split
     out.mkdir(parents=True, exist_ok=True)
@@ -240,7 +254,13 @@ def run_rollout(args: argparse.Namespace) -> int:
         trajectory = dataset[i]
         info = {"dataset": str(args.data), "split": args.split, "checkpoint": str(checkpoint)}
         try:
-            result = rollout(simulator, trajectory, num_steps=args.steps, metadata=info)
+            result = rollout(
+                simulator,
+                trajectory,
+                num_steps=args.steps,
+                metadata=info,
+                escape_distance=args.escape_distance,
+            )
         except RolloutDiverged as err:
             print(f"trajectory {i}: {err}", file=sys.stderr)
             result, diverged = err.rollout, diverged + 1

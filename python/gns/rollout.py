@@ -18,6 +18,7 @@ NaN never travels on into later steps, metrics or files.
 from __future__ import annotations
 
 import json
+import math
 import operator
 import os
 import pickle
@@ -29,6 +30,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import Tensor
 
 import gns
 from gns.data.atomic import atomic_file
@@ -135,13 +137,37 @@ class Rollout:
 
 
 class RolloutDiverged(ValueError):
-    """A step predicted non-finite positions. `rollout` holds the steps before it (finite);
-    `step` is the 0-based step (it predicted frame C + 1 + step), `num_nonfinite` the number
-    of particles whose position is not finite."""
+    """A step predicted non-finite positions, or particles far outside the domain (see
+    `rollout`'s escape_distance). `rollout` holds the steps before it (all good); `step` is the
+    0-based step (it predicted frame C + 1 + step); `num_nonfinite` counts the particles whose
+    position is not finite, `particles` lists the offending particles (non-finite or escaped)."""
 
-    def __init__(self, message: str, rollout: Rollout, step: int, num_nonfinite: int) -> None:
+    def __init__(
+        self,
+        message: str,
+        rollout: Rollout,
+        step: int,
+        num_nonfinite: int,
+        particles: np.ndarray | None = None,
+    ) -> None:
         super().__init__(message)
         self.rollout, self.step, self.num_nonfinite = rollout, step, num_nonfinite
+        self.particles = np.zeros(0, dtype=np.int64) if particles is None else particles
+
+
+def _domain(simulator: LearnedSimulator, first_frame: np.ndarray) -> tuple[Tensor, Tensor]:
+    """(lo, hi) per axis: the scene's bounds, or without them the first frame's bounding box."""
+    bounds = simulator.scene.bounds
+    if bounds is not None:
+        lo, hi = (np.array([b[k] for b in bounds], dtype=np.float64) for k in (0, 1))
+    else:
+        lo, hi = first_frame.min(axis=0).astype(np.float64), first_frame.max(axis=0)
+    return torch.from_numpy(lo), torch.from_numpy(np.asarray(hi, dtype=np.float64))
+
+
+def _listed(indices: np.ndarray, limit: int = 10) -> str:
+    shown = ", ".join(str(int(i)) for i in indices[:limit])
+    return shown + (f", ... ({len(indices)} in all)" if len(indices) > limit else "")
 
 
 # ---------------------------------------------------------------------------------- rollout
@@ -236,6 +262,7 @@ def rollout(
     num_steps: int | None = None,
     device: torch.device | str | None = None,
     metadata: Mapping[str, Any] | None = None,
+    escape_distance: float | None = 1.0,
 ) -> Rollout:
     """Roll the simulator out from the first C + 1 frames of `trajectory`.
 
@@ -248,14 +275,29 @@ def rollout(
         stays. Default: the simulator's device.
     metadata: extra plain JSON entries (e.g. the dataset's name, a checkpoint) for
         Rollout.metadata, over the scene and run facts gathered here.
+    escape_distance: a particle farther outside the domain (the scene's bounds, else the first
+        frame's bounding box) than this many times the domain's longest side is taken as
+        divergence; None: never. Positions that far off are garbage, and the model would only
+        go on feeding them to the graph and the next step.
 
     Step t feeds frames t ... t + C (particle-major, (N, C + 1, D)), the step context of frame
     t + C (the last input frame, as training windows do) and the material property, exactly as
     `simulator.predict_positions` does; kinematic particles are then set to ground-truth frame
     t + C + 1. Runs under torch.inference_mode() in eval mode; the simulator's previous mode is
     restored. Raises ValueError for unusable arguments and RolloutDiverged (a ValueError) at the
-    first step with a non-finite position.
+    first step with a non-finite position or an escaped particle, naming the step and particles.
+    The rollout's precision is the simulator's (never below float32): `simulator.double()`
+    rolls out in float64, e.g. to compare drift.
     """
+    if escape_distance is not None and not (
+        isinstance(escape_distance, (int, float))
+        and math.isfinite(escape_distance)
+        and escape_distance > 0
+    ):
+        raise ValueError(
+            f"escape_distance must be a positive number of domain lengths or None, got "
+            f"{escape_distance!r}"
+        )
     c = simulator.config.model.velocity_history
     history = c + 1
     particle_type = trajectory.particle_type
@@ -292,6 +334,9 @@ def rollout(
     if trajectory.material_property is not None:
         material = torch.from_numpy(trajectory.material_property).to(device)
 
+    lo, hi = (x.to(device, dtype) for x in _domain(simulator, positions[0]))
+    if escape_distance is not None:
+        allowed = escape_distance * float((hi - lo).max().clamp_min(simulator.scene.radius))
     predicted = torch.empty(num_steps, n, d, dtype=dtype, device=device)
     seconds = np.zeros((len(TIMING_PARTS), num_steps), dtype=np.float64)
     now = _clock(device)
@@ -343,17 +388,31 @@ def rollout(
                 t4 = now()
                 seconds[:, step] = (t1 - t0, t2 - t1, t3 - t2, t4 - t3)
 
-                nonfinite = int((~torch.isfinite(next_position).all(dim=-1)).sum())
-                if nonfinite:
+                bad = ~torch.isfinite(next_position).all(dim=-1)
+                nonfinite = int(bad.sum())
+                escaped = 0
+                if escape_distance is not None and not nonfinite:
+                    outside = torch.maximum(lo - next_position, next_position - hi)
+                    far = outside.amax(dim=-1) > allowed
+                    escaped, bad = int(far.sum()), far
+                if nonfinite or escaped:
+                    particles = torch.nonzero(bad).flatten().cpu().numpy()
+                    what = (
+                        f"{nonfinite} of {n} particles have non-finite positions"
+                        if nonfinite
+                        else f"{escaped} of {n} particles are more than {allowed:.3g} outside "
+                        f"the domain ({escape_distance} times its longest side)"
+                    )
                     partial = result(step)
                     partial.metadata["diverged_at_step"] = step
                     raise RolloutDiverged(
                         f"rollout diverged at step {step} (predicting frame {frame + 1}): "
-                        f"{nonfinite} of {n} particles have non-finite positions; "
-                        f"the {step} steps before it are in .rollout",
+                        f"{what} (particles {_listed(particles)}); the {step} steps before "
+                        "it are in .rollout",
                         partial,
                         step,
                         nonfinite,
+                        particles,
                     )
                 predicted[step] = next_position
                 window = torch.cat([window[:, 1:], next_position[:, None]], dim=1)

@@ -306,7 +306,7 @@ def validate(
     far the ground truth's did over the same frames. Eval mode (no noise, no statistics)."""
     from gns.evaluate import one_step_errors, outside_box
     from gns.metrics import mse_over_time
-    from gns.rollout import rollout
+    from gns.rollout import RolloutDiverged, rollout
 
     figures: dict[str, float] = {}
     if trajectories and config.validation_windows:
@@ -321,18 +321,26 @@ def validate(
         steps = min(config.validation_rollout_steps, trajectory.num_frames - history)
         if steps < 1:
             continue
-        result = rollout(simulator, trajectory, num_steps=steps, device=device)
         # A copy: dataset arrays may be read-only, which torch.from_numpy warns about.
         types = torch.from_numpy(np.array(trajectory.particle_type))
         free = ~simulator.kinematic_mask(types).numpy()
+        if bounds is not None:
+            truth = trajectory.positions[history : history + steps]
+            truth_excursions.append(outside_box(truth[:, free], bounds))
+        try:
+            result = rollout(simulator, trajectory, num_steps=steps, device=device)
+        except RolloutDiverged:
+            # A diverged rollout is the worst validation, not the end of training.
+            rollout_errors.append(math.inf)
+            excursions.append(math.inf)
+            continue
         per_frame = mse_over_time(result.predicted_rollout, result.ground_truth_rollout, free)
         rollout_errors.append(float(per_frame.mean()))
         if bounds is not None:
             excursions.append(outside_box(result.predicted_rollout[:, free], bounds))
-            truth_excursions.append(outside_box(result.ground_truth_rollout[:, free], bounds))
     if rollout_errors:
         figures["rollout_mse"] = float(np.mean(rollout_errors))
-    if excursions:
+    if bounds is not None and rollout_errors:
         figures["rollout_outside_box"] = max(excursions)
         figures["truth_outside_box"] = max(truth_excursions)
     return figures
