@@ -52,7 +52,7 @@ pub fn euler_step<T: Real>(
         if let Some((i, d)) = first_non_finite(a, dim) {
             return Err(Error::NonFinite(format!(
                 "the new {name} of particle {i} (axis {d}) overflows to {}; the acceleration \
-                 {} is too large for this precision",
+                 {:e} is too large for this precision",
                 a[i * dim + d].to_f64(),
                 acceleration[i * dim + d].to_f64()
             )));

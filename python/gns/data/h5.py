@@ -19,6 +19,11 @@ from gns.data.atomic import atomic_file
 from gns.data.errors import DatasetError
 from gns.data.trajectory import Trajectory
 
+# What h5py raises for a damaged file: OSError mostly, but a damaged object header can come
+# out as KeyError ("Unable to synchronously open object") or RuntimeError. Keys are checked
+# before they are read, so a KeyError here is damage, not a missing member.
+H5_DAMAGE = (OSError, KeyError, RuntimeError)
+
 
 def _group_order(name: str) -> tuple[int, int | str]:
     return (0, int(name)) if name.isdigit() else (1, name)
@@ -45,7 +50,7 @@ class H5Source:
                     raise DatasetError(
                         self.path, "group holds neither 'position' nor 'positions'", self.groups[0]
                     )
-        except OSError as err:
+        except H5_DAMAGE as err:
             raise DatasetError(self.path, f"not a readable HDF5 file: {err}") from err
 
     def __len__(self) -> int:
@@ -65,7 +70,7 @@ class H5Source:
                 types = group["particle_type"][()]
                 material = group["material_property"][()] if "material_property" in group else None
                 context = group["step_context"][()] if "step_context" in group else None
-        except OSError as err:
+        except H5_DAMAGE as err:
             raise DatasetError(self.path, f"group {name} is damaged: {err}", index) from err
         return Trajectory(positions, types, context, material, key=index, source=str(self.path))
 

@@ -17,6 +17,7 @@ import io
 import os
 import pickle
 import zipfile
+import zlib
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -159,7 +160,8 @@ class NpzSource:
             return read_member(archive, member)
         except (pickle.UnpicklingError, ValueError, EOFError, TypeError) as err:
             raise DatasetError(self.path, f"member {member}: {err}", index) from err
-        except (zipfile.BadZipFile, OSError) as err:
+        except (zipfile.BadZipFile, OSError, zlib.error) as err:
+            # zlib.error: a damaged compressed member (it is no OSError or ValueError).
             raise DatasetError(self.path, f"member {member} is damaged: {err}", index) from err
 
     def __len__(self) -> int:
