@@ -211,6 +211,10 @@ class TrainConfig:
     mirror_axes: axes along which each training window is mirrored with probability 1/2 (about
         the box's centre; gns.augment), for scenes symmetric along them; none by default, as
         in the paper.
+    spike_factor: a step whose loss exceeds this many times the median loss of the previous
+        100 steps (once there are 20) is reported as a loss spike, on stderr and in spikes.csv,
+        with the batch's windows; training goes on. 0 turns the check off. (Non-finite losses
+        and gradients always stop training.)
     """
 
     steps: int = 20_000_000
@@ -229,6 +233,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
     seed: int = 0
     mirror_axes: tuple[int, ...] = ()
+    spike_factor: float = 10.0
 
     def __post_init__(self) -> None:
         _positive(
@@ -261,6 +266,10 @@ class TrainConfig:
         ):
             raise ValueError(
                 f"TrainConfig.mirror_axes must be distinct axes >= 0, got {list(self.mirror_axes)}"
+            )
+        if not (self.spike_factor == 0 or self.spike_factor > 1):  # NaN fails both
+            raise ValueError(
+                f"TrainConfig.spike_factor must be 0 (off) or above 1, got {self.spike_factor}"
             )
 
     def learning_rate_at(self, step: int) -> float:

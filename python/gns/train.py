@@ -15,6 +15,7 @@ A run folder holds:
     checkpoints/          step_000001000.pt ...: plain dicts written atomically (torch.save);
                           best.pt: the best validated weights so far (see `better_validation`)
     train.csv, valid.csv  loss and validation figures per logged step
+    spikes.csv            loss spikes (see TrainConfig.spike_factor), with their batches
     tensorboard/          the same figures for TensorBoard
 """
 
@@ -27,6 +28,8 @@ import math
 import os
 import sys
 import time
+import zipfile
+from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
 from types import SimpleNamespace
@@ -59,6 +62,13 @@ __all__ = [
 ]
 
 CHECKPOINT_FORMAT = "gns-checkpoint-1"
+# What load_simulator needs (best.pt holds only these), and what an exact resume needs too.
+WEIGHTS_KEYS = ("format", "step", "config", "scene", "statistics", "model")
+RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "sampler", "noise_generator")
+# Loss spikes are measured against the median loss of this many previous steps, once there
+# are at least SPIKE_MIN_HISTORY of them (see TrainConfig.spike_factor).
+SPIKE_WINDOW = 100
+SPIKE_MIN_HISTORY = 20
 
 
 # ---------------------------------------------------------------------------------- devices
@@ -154,14 +164,54 @@ def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None
         torch.save(state, tmp)
 
 
-def load_checkpoint(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """A checkpoint dict; tensors are loaded on the CPU (weights_only: nothing is executed)."""
+def _check_archive(path: str | os.PathLike[str]) -> None:
+    """ValueError unless `path` is a complete zip archive (torch.save's format) whose members all
+    match their CRC-32: torch.load itself notices truncation but reads flipped bytes silently."""
+    name = os.fspath(path)
+    try:
+        size = os.path.getsize(path)
+    except OSError as err:
+        raise ValueError(f"{name}: cannot read the checkpoint ({err})") from err
+    if size == 0:
+        raise ValueError(f"{name}: the checkpoint is empty (0 bytes)")
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                if info.CRC == 0 and info.file_size:
+                    continue  # saved with torch's CRC-32 turned off: nothing to compare
+                with archive.open(info) as member:
+                    while member.read(1 << 20):
+                        pass
+    except Exception as err:  # BadZipFile, EOFError, OSError, struct.error, ...
+        raise ValueError(
+            f"{name}: the checkpoint is truncated or corrupted ({type(err).__name__}: {err})"
+        ) from err
+
+
+def load_checkpoint(path: str | os.PathLike[str], resume: bool = False) -> dict[str, Any]:
+    """A checkpoint dict; tensors are loaded on the CPU (weights_only: nothing is executed).
+
+    Verified first: a truncated or corrupted file (every member's CRC-32 is checked), one that
+    is not a gns checkpoint, or one without the entries the model needs (`resume`: and those an
+    exact resume needs) raises ValueError naming the file and what is wrong."""
+    name = os.fspath(path)
+    _check_archive(path)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
-        raise ValueError(f"{os.fspath(path)}: not a readable gns checkpoint ({err})") from err
+        raise ValueError(f"{name}: not a readable gns checkpoint ({err})") from err
     if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{os.fspath(path)}: not a gns checkpoint (format {CHECKPOINT_FORMAT})")
+        raise ValueError(f"{name}: not a gns checkpoint (format {CHECKPOINT_FORMAT})")
+    missing = [key for key in (RESUME_KEYS if resume else WEIGHTS_KEYS) if key not in state]
+    if missing:
+        hint = " (weights only: resume from a step_*.pt)" if resume else ""
+        raise ValueError(f"{name}: the checkpoint lacks {', '.join(missing)}{hint}")
+    step = state["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise ValueError(f"{name}: the checkpoint's step is {step!r}, not a count of steps")
+    model = state["model"]
+    if not isinstance(model, dict) or not all(isinstance(v, Tensor) for v in model.values()):
+        raise ValueError(f"{name}: the checkpoint's model entry is not a dict of tensors")
     return state
 
 
@@ -170,6 +220,45 @@ def latest_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
     folder = Path(run_dir) / "checkpoints"
     found = sorted(folder.glob("step_*.pt")) if folder.is_dir() else []
     return found[-1] if found else None
+
+
+def _resume_checkpoint(run_dir: Path, announce: bool) -> tuple[Path, dict[str, Any]]:
+    """The newest intact step_*.pt of run_dir and its contents. A newer one that fails
+    verification is skipped with a loud message on stderr (`announce`: this process reports);
+    it stays in place and is overwritten when training reaches its step again."""
+    folder = run_dir / "checkpoints"
+    found = sorted(folder.glob("step_*.pt"), reverse=True) if folder.is_dir() else []
+    if not found:
+        raise ValueError(f"--resume: no checkpoint in {folder}")
+    problems: list[str] = []
+    for path in found:
+        try:
+            state = load_checkpoint(path, resume=True)
+        except ValueError as err:
+            problems.append(str(err))
+            if announce:
+                sys.stderr.write(f"WARNING: {err}; skipping it\n")
+            continue
+        if problems and announce:
+            sys.stderr.write(
+                f"WARNING: resuming from {path} (step {state['step']}), the newest intact "
+                f"checkpoint; {len(problems)} newer one(s) could not be used (above), and the "
+                "steps after it are trained again\n"
+            )
+        return path, state
+    raise ValueError(
+        f"--resume: no intact checkpoint in {folder}: "
+        + "; ".join(problems)
+        + ". Delete the corrupted files; with none left, start a new run folder"
+    )
+
+
+def _remove_stale_temporaries(run_dir: Path) -> None:
+    """Temporary files of atomic writes that a killed run left behind (never read)."""
+    for folder in (run_dir, run_dir / "checkpoints"):
+        if folder.is_dir():
+            for tmp in folder.glob(".*.tmp"):
+                tmp.unlink(missing_ok=True)
 
 
 def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
@@ -221,7 +310,7 @@ class RunLog:
 
         self.run_dir = run_dir
         if resume_step is not None:
-            for name in ("train.csv", "valid.csv"):
+            for name in ("train.csv", "valid.csv", "spikes.csv"):
                 self._truncate(run_dir / name, resume_step)
         purge = None if resume_step is None else resume_step + 1
         self.tensorboard = SummaryWriter(str(run_dir / "tensorboard"), purge_step=purge)
@@ -232,7 +321,12 @@ class RunLog:
             return
         with open(path, newline="") as f:
             rows = list(csv.reader(f))
-        kept = rows[:1] + [row for row in rows[1:] if row and int(row[0]) <= step]
+
+        def kept_row(row: list[str]) -> bool:
+            # Rows of the header's width (a killed run may have left a cut-off last line).
+            return len(row) == len(rows[0]) and row[0].isdigit() and int(row[0]) <= step
+
+        kept = rows[:1] + [row for row in rows[1:] if kept_row(row)]
         with atomic_file(path) as tmp, open(tmp, "w", newline="") as f:
             csv.writer(f).writerows(kept)
 
@@ -247,6 +341,15 @@ class RunLog:
         for key, value in values.items():
             self.tensorboard.add_scalar(f"{name}/{key}", value, step)
         self.tensorboard.flush()
+
+    def spike(self, step: int, loss: float, median: float, windows: str) -> None:
+        path = self.run_dir / "spikes.csv"
+        new = not path.exists()
+        with open(path, "a", newline="") as f:
+            writer = csv.writer(f)
+            if new:
+                writer.writerow(["step", "loss", "recent_median", "windows"])
+            writer.writerow([step, f"{loss:.9g}", f"{median:.9g}", windows])
 
     def close(self) -> None:
         self.tensorboard.close()
@@ -405,6 +508,42 @@ def _all_reduce_sum(tensor: Tensor) -> None:
     dist.all_reduce(tensor, op=dist.ReduceOp.SUM)
 
 
+def _batch_windows(batch: Batch, world: int) -> str:
+    """The windows of every rank's batch as "trajectory:start" (each trajectory by its key),
+    "rank R: ..." per rank under DDP (a collective call there)."""
+    own = " ".join(f"{t}:{s}" for t, s in zip(batch.trajectory, batch.start, strict=True))
+    if world == 1:
+        return own
+    parts: list[Any] = [None] * world
+    dist.all_gather_object(parts, own)
+    return "; ".join(f"rank {r}: {part}" for r, part in enumerate(parts))
+
+
+def _non_finite_message(
+    step: int, loss: float, local_loss: float, simulator: nn.Module, windows: str, world: int
+) -> str:
+    """What was not finite at gradient step `step` (the loss, which parameters' gradients)."""
+    what = []
+    if not math.isfinite(loss):
+        local = "" if world == 1 else f" (this rank's part: {local_loss})"
+        what.append(f"the training loss became {loss}{local}")
+    bad = [
+        name
+        for name, p in simulator.named_parameters()
+        if p.grad is not None and not bool(torch.isfinite(p.grad).all())
+    ]
+    if bad:
+        shown = ", ".join(bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+        what.append(f"the gradient of {shown} became non-finite")
+    if not what:  # the largest gradient is finite in every parameter, yet not overall
+        what.append("the gradients became non-finite")
+    return (
+        f"{' and '.join(what)} at step {step} (counting from 0), on the batch of windows "
+        f"(trajectory:start) {windows}; the optimizer did not apply it, and the last checkpoint "
+        "holds the parameters before it"
+    )
+
+
 def train(
     data: str | os.PathLike[str],
     run_dir: str | os.PathLike[str],
@@ -426,6 +565,10 @@ def train(
     time_limit: wall-clock seconds for this call (loading included); training stops after the
     first step that ends past it, writes a checkpoint of that step and returns. resume=True then
     continues from that checkpoint exactly as an uninterrupted run would have.
+    A non-finite loss or gradient stops training with FloatingPointError naming the step, what
+    was non-finite and the batch's windows, before the optimizer applies it; a loss spike (see
+    TrainConfig.spike_factor) is reported on stderr and in spikes.csv. On resume, a newest
+    checkpoint that fails verification is skipped, loudly, for the previous intact one.
     """
     if time_limit is not None and not (
         isinstance(time_limit, (int, float)) and math.isfinite(time_limit) and time_limit > 0
@@ -443,9 +586,7 @@ def train(
     checkpoint: dict[str, Any] | None = None
     found = latest_checkpoint(run_dir)
     if resume:
-        if found is None:
-            raise ValueError(f"--resume: no checkpoint in {run_dir / 'checkpoints'}")
-        checkpoint = load_checkpoint(found)
+        found, checkpoint = _resume_checkpoint(run_dir, announce=leader)
         saved = from_dict(Config, checkpoint["config"])
         # Only the number of steps may change on resume (to train a run for longer).
         if config is not None:
@@ -520,6 +661,7 @@ def train(
         best = checkpoint.get("best")
 
     if leader:
+        _remove_stale_temporaries(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "checkpoints").mkdir(exist_ok=True)
         with atomic_file(run_dir / "config.json") as tmp:
@@ -564,6 +706,7 @@ def train(
             "optimizer": optimizer.state_dict(),
             "sampler": sampler.state_dict(),
             "noise_generator": [s.cpu() for s in states],
+            "recent_losses": list(recent),
         }
 
     def write_checkpoint(step: int) -> None:
@@ -575,6 +718,11 @@ def train(
             old.unlink()
 
     losses: list[float] = []
+    # The losses of the last SPIKE_WINDOW steps (the global loss under DDP), for spikes.
+    recent: deque[float] = deque(maxlen=SPIKE_WINDOW)
+    if checkpoint is not None:
+        recent.extend(float(v) for v in checkpoint.get("recent_losses", []))
+    parameters = [p for p in simulator.parameters() if p.requires_grad]
     step = start
     stopped_at: int | None = None
     try:
@@ -609,15 +757,45 @@ def train(
             loss = squared_sum * world / count.clamp(min=1.0)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            optimizer.step()
-            value = float(loss.detach())
-            if not math.isfinite(value):
+            # Before the optimizer applies anything: are the loss and every gradient finite?
+            # One synchronisation (and under DDP one all-reduce, so all ranks agree): the
+            # loss, and the largest |gradient|, which cannot overflow and is NaN if any is.
+            grads = [p.grad for p in parameters if p.grad is not None]
+            largest = (
+                torch.nn.utils.get_total_norm(grads, norm_type=math.inf)
+                if grads
+                else torch.zeros((), device=device)
+            )
+            health = torch.stack([loss.detach().float(), largest.float()])
+            if world > 1:
+                health /= world  # the sum over ranks: the global loss; |gradient| as is
+                _all_reduce_sum(health)
+            global_loss, largest_grad = health.tolist()
+            value = global_loss if world == 1 else float(loss.detach())
+            if not (math.isfinite(global_loss) and math.isfinite(largest_grad)):
+                windows = _batch_windows(batch, world)
                 raise FloatingPointError(
-                    f"the training loss became {value} at step {step}; the last checkpoint "
-                    "holds the parameters before it"
+                    _non_finite_message(step, global_loss, value, simulator, windows, world)
                 )
-            losses.append(value)
+            optimizer.step()
             done = step + 1
+            if tc.spike_factor and len(recent) >= SPIKE_MIN_HISTORY:
+                median = float(np.median(recent))
+                if global_loss > tc.spike_factor * median:  # the same on every rank
+                    windows = _batch_windows(batch, world)
+                    if leader:
+                        newline = "\n" if meter.tty and meter.enabled else ""  # past \r lines
+                        sys.stderr.write(
+                            f"{newline}loss spike at step {done}: {global_loss:.4g}, "
+                            f"{global_loss / median:.1f} times the median {median:.4g} of the "
+                            f"previous {len(recent)} steps, on "
+                            f"the batch of windows (trajectory:start) {windows}; training "
+                            "goes on\n"
+                        )
+                    if log is not None:
+                        log.spike(done, global_loss, median, windows)
+            recent.append(global_loss)
+            losses.append(value)
             meter.show(done, value)
             stopping = out_of_time() and done < tc.steps
             if done % tc.log_every == 0 or done == tc.steps or stopping:
