@@ -4,7 +4,7 @@
     python benches/stability.py --quick    # the fast, deterministic part (what CI runs)
     python benches/stability.py --only mpm # cases whose layer or name contains the text
 
-Each case runs in a forked child process with a time limit and a memory limit, so that a crash
+Each case runs in a child process of its own with a time limit and a memory limit, so that a crash
 (a signal), a hang or a runaway allocation is a failed row, not the end of the run. A case
 passes when what happened is what should happen: a finite, correct answer, or a ValueError that
 names the problem. The table says what was tried, what happened, and pass or fail.
@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import argparse
 import faulthandler
+import json
 import math
-import multiprocessing as mp
 import os
 import resource
+import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -430,46 +432,74 @@ CASES = [
 # ------------------------------------------------------------------------------------ driver
 
 
-def _child(conn, index: int) -> None:
+def _self_test_cases() -> list[Case]:
+    """Cases that must fail, for the driver's own test: a crash, a hang, a missing error."""
+
+    def crash() -> str:
+        os.kill(os.getpid(), signal.SIGSEGV)
+        return ""
+
+    return [
+        Case("self-test", "crash", "", crash),
+        Case("self-test", "hang", "", lambda: str(time.sleep(60)), timeout=2.0),
+        Case("self-test", "wrong", "", lambda: refused(lambda: None, "x")),
+    ]
+
+
+def _cases(self_test: bool) -> list[Case]:
+    return _self_test_cases() if self_test else CASES
+
+
+def _child(index: int, self_test: bool) -> None:
+    """Runs one case in this (fresh) process and prints its outcome as one JSON line."""
     # A crash is reported by the parent from the exit signal; no traceback dump from here.
     faulthandler.disable()
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
     try:
-        conn.send((True, CASES[index].run()))
+        outcome = (True, _cases(self_test)[index].run())
     except BaseException as e:  # noqa: BLE001 - every failure becomes the row's text
         last = traceback.extract_tb(e.__traceback__)[-1]
-        conn.send((False, f"{type(e).__name__}: {e} ({Path(last.filename).name}:{last.lineno})"))
+        outcome = (False, f"{type(e).__name__}: {e} ({Path(last.filename).name}:{last.lineno})")
+    print(RESULT + json.dumps(outcome), flush=True)
 
 
-def run_case(index: int) -> tuple[bool, str, float]:
-    """(passed, what happened, seconds) of CASES[index], run in a forked child."""
-    case = CASES[index]
-    ctx = mp.get_context("fork")
-    receive, send = ctx.Pipe(duplex=False)
+RESULT = "stability-result: "
+
+
+def run_case(index: int, self_test: bool = False) -> tuple[bool, str, float]:
+    """(passed, what happened, seconds) of case `index`, run in a fresh Python process. Not a
+    fork: a forked child of a process that has used the Rust core inherits a thread pool whose
+    threads do not exist in the child, and its first parallel call would wait forever."""
+    case = _cases(self_test)[index]
+    command = [sys.executable, __file__, "--case", str(index)]
+    if self_test:
+        command.append("--self-test")
     started = time.perf_counter()
-    child = ctx.Process(target=_child, args=(send, index))
-    child.start()
-    send.close()
-    if not receive.poll(case.timeout):
-        child.kill()
-        child.join()
-        return False, f"hung: no answer within {case.timeout:.0f} s", case.timeout
     try:
-        passed, happened = receive.recv()
-    except EOFError:
-        passed, happened = False, "crashed"
-    child.join()
+        done = subprocess.run(command, capture_output=True, text=True, timeout=case.timeout)
+    except subprocess.TimeoutExpired:
+        return False, f"hung: no answer within {case.timeout:g} s", case.timeout
     seconds = time.perf_counter() - started
-    if child.exitcode and child.exitcode < 0:
-        passed, happened = False, f"crashed: signal {-child.exitcode}"
-    return passed, happened, seconds
+    if done.returncode < 0:
+        return False, f"crashed: signal {-done.returncode}", seconds
+    lines = [x for x in done.stdout.splitlines() if x.startswith(RESULT)]
+    if not lines:
+        tail = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        return False, f"crashed: exit status {done.returncode}: {tail}", seconds
+    passed, happened = json.loads(lines[-1][len(RESULT) :])
+    return bool(passed), str(happened), seconds
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="only the fast, deterministic part")
     parser.add_argument("--only", help="cases whose layer or name contains this text")
+    parser.add_argument("--case", type=int, help=argparse.SUPPRESS)  # the child's side
+    parser.add_argument("--self-test", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.case is not None:
+        _child(args.case, args.self_test)
+        return 0
     chosen = [
         i
         for i, c in enumerate(CASES)
