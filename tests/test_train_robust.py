@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import random
+import re
 import signal
 import subprocess
 import sys
@@ -364,7 +365,9 @@ def test_under_ddp_every_rank_stops_at_a_bad_batch_on_one_rank(tmp_path):
         timeout=300,  # a rank left waiting in a collective would hang here
     )
     assert done.returncode != 0
-    lines = [line for line in done.stdout.splitlines() if " stopped: " in line]
+    # The ranks share the pipe and their lines can arrive run together: split on the reports.
+    reports = re.split(r"(?=rank \d stopped: )", done.stdout)
+    lines = [r.strip() for r in reports if " stopped: " in r]
     assert len(lines) == 2, done.stdout + done.stderr
     for rank, line in enumerate(sorted(lines)):
         assert line.startswith(f"rank {rank} stopped: the training loss became nan"), line
