@@ -50,6 +50,7 @@ from importlib import metadata
 
 import gns
 import numpy as np
+from gns.machine import cpu_name
 
 Edges = np.ndarray  # (2, E) int64
 PEER_TIMEOUT = 120.0  # seconds per peer and case
@@ -277,15 +278,7 @@ def peer_available(name: str) -> str | None:
 
 
 def machine() -> str:
-    cpu = platform.processor() or "unknown CPU"
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
+    cpu = cpu_name()
     affinity = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     return f"{cpu}, {os.cpu_count()} logical cores ({affinity} usable), {platform.platform()}"
 

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
@@ -88,6 +87,7 @@ import torch  # noqa: E402
 from gns.config import Config  # noqa: E402
 from gns.data import Trajectory, open_dataset  # noqa: E402
 from gns.data.windows import collate, trajectory_windows  # noqa: E402
+from gns.machine import cpu_name  # noqa: E402
 from gns.model import EncodeProcessDecode, native_bf16  # noqa: E402
 from gns.rollout import TIMING_PARTS, rollout  # noqa: E402
 from gns.simulator import LearnedSimulator, Scene  # noqa: E402
@@ -330,16 +330,8 @@ def cells(case: Case, variant: Variant, r: dict, peak: float, plain: dict | None
 
 
 def machine_facts(device: torch.device) -> list[str]:
-    cpu = platform.processor() or "?"
-    try:
-        for text in Path("/proc/cpuinfo").read_text().splitlines():
-            if text.startswith("model name"):
-                cpu = text.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     facts = [
-        f"cpu: {cpu} ({os.cpu_count()} logical cores)",
+        f"cpu: {cpu_name()} ({os.cpu_count()} logical cores)",
         f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, "
         f"Rust threads: {os.environ.get('RAYON_NUM_THREADS', 'all cores')}, device {device}",
     ]

@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from gns.data.atomic import write_bytes_atomic
+from gns.machine import cpu_name
 from gns.metrics import constant_velocity_rollout, evaluate_rollout
 
 __all__ = [
@@ -288,18 +289,10 @@ def machine() -> dict[str, Any]:
     """What the timings were measured on."""
     import torch
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     cores = os.cpu_count() or 1
     rayon = os.environ.get("RAYON_NUM_THREADS")
     info = {
-        "cpu": cpu,
+        "cpu": cpu_name(),
         "logical_cpus": cores,
         "torch_threads": torch.get_num_threads(),
         # The Rust core (MPM, radius graphs) runs on rayon's global pool.
