@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gns.data.atomic import write_json_atomic
+from gns.data.atomic import claim_folder, write_json_atomic
 
 __all__ = ["SIZES", "DemoSize", "demo", "demo_config"]
 
@@ -95,20 +95,14 @@ def _phase(number: int, text: str) -> float:
 
 def _arguments(out: Path, arguments: dict[str, Any]) -> None:
     """Record the demo's arguments in OUT/demo.json, or check them against an earlier run."""
-    record = out / "demo.json"
-    if record.is_file():
-        stored = json.loads(record.read_text(encoding="utf-8"))
-        if stored != arguments:
-            diff = {k: (stored.get(k), v) for k, v in arguments.items() if stored.get(k) != v}
-            raise ValueError(
-                f"{out} holds a demo made with other arguments (name: (theirs, yours)) {diff}; "
-                "repeat that command to resume it, or choose another --out"
-            )
-        return
-    if out.exists() and any(out.iterdir()):
-        raise ValueError(f"{out} exists, is not empty and is not a gns demo folder")
-    out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(record, arguments)
+    claim_folder(
+        out,
+        "demo.json",
+        arguments,
+        holds="a demo made",
+        resume="repeat that command to resume it, or choose another --out",
+        foreign="exists, is not empty and is not a gns demo folder",
+    )
 
 
 def demo(

@@ -31,7 +31,6 @@ folder appears in one rename at the end and OUT.partial/ is then removed.
 from __future__ import annotations
 
 import concurrent.futures as cf
-import json
 import math
 import os
 import shutil
@@ -46,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from gns import mpm
-from gns.data.atomic import atomic_file, atomic_folder, write_json_atomic
+from gns.data.atomic import atomic_file, atomic_folder, claim_folder
 from gns.data.deepmind import write_tfrecord
 from gns.data.metadata import DEFAULT_KINEMATIC_TYPES, Metadata
 from gns.data.stats import StatisticsAccumulator
@@ -419,22 +418,16 @@ def _arguments(
 
 
 def _prepare_work(work: Path, arguments: dict[str, Any]) -> None:
-    record = work / "arguments.json"
-    if record.is_file():
-        stored = json.loads(record.read_text(encoding="utf-8"))
-        if stored != arguments:
-            diff = {k: (stored.get(k), v) for k, v in arguments.items() if stored.get(k) != v}
-            raise ValueError(
-                f"{work} holds an interrupted run with other arguments "
-                f"(name: (theirs, yours)) {diff}; repeat that run's command to finish it, or "
-                "delete the folder to start afresh"
-            )
-    elif work.exists() and any(work.iterdir()):
-        raise ValueError(f"{work} exists but is not a gns generate work folder; move it away")
+    claim_folder(
+        work,
+        "arguments.json",
+        arguments,
+        holds="an interrupted run",
+        resume="repeat that run's command to finish it, or delete the folder to start afresh",
+        foreign="exists but is not a gns generate work folder; move it away",
+    )
     for split in SPLITS:
         (work / split).mkdir(parents=True, exist_ok=True)
-    if not record.is_file():
-        write_json_atomic(record, arguments)
 
 
 def _reusable(work: Path, split: str, index: int) -> bool:

@@ -59,3 +59,33 @@ def write_bytes_atomic(path: str | os.PathLike[str], payload: bytes) -> None:
 
 def write_json_atomic(path: str | os.PathLike[str], payload: Mapping[str, Any]) -> None:
     write_bytes_atomic(path, (json.dumps(payload, indent=1) + "\n").encode("utf-8"))
+
+
+def claim_folder(
+    folder: Path,
+    record_name: str,
+    arguments: Mapping[str, Any],
+    *,
+    holds: str,
+    resume: str,
+    foreign: str,
+) -> None:
+    """Make `folder` the folder of a resumable run made with `arguments`: one whose record
+    (folder/record_name) holds the same arguments is reused; one recording other arguments
+    ("{folder} holds {holds} with other arguments ...; {resume}") or holding anything else
+    ("{folder} {foreign}") is refused with ValueError; a missing or empty one is created and
+    the arguments recorded, atomically."""
+    record = folder / record_name
+    if record.is_file():
+        stored = json.loads(record.read_text(encoding="utf-8"))
+        if stored != dict(arguments):
+            diff = {k: (stored.get(k), v) for k, v in arguments.items() if stored.get(k) != v}
+            raise ValueError(
+                f"{folder} holds {holds} with other arguments (name: (theirs, yours)) {diff}; "
+                f"{resume}"
+            )
+        return
+    if folder.exists() and any(folder.iterdir()):
+        raise ValueError(f"{folder} {foreign}")
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(record, arguments)
