@@ -2,7 +2,7 @@
 //! from the graph's actual bounding box, with positions copied in cell order (structure of
 //! arrays) so that each query scans a few contiguous runs instead of 9 or 27 scattered cells.
 
-use crate::graph::{accept_at, Ctx, Found, Prepared, SharedMut};
+use crate::graph::{accept_at, clump_edges, tight, Ctx, Found, Prepared, SharedMut};
 use rayon::prelude::*;
 
 /// The grid declines (and the caller uses the k-d tree) when it would need more cells than
@@ -24,6 +24,9 @@ pub(crate) struct Grid<const D: usize> {
     periodic: [bool; D],
     /// cell_start[c]..cell_start[c + 1] are the sorted positions of cell c.
     cell_start: Vec<u32>,
+    /// The sum over cells of their particle count squared: no more edges can come from
+    /// within cells (see [`Grid::sure_edges`]).
+    pairs_in_cells: u64,
     /// Sorted position -> cell id.
     cell_of: Vec<u32>,
     /// Sorted position -> global particle index.
@@ -44,6 +47,7 @@ impl<const D: usize> Default for Grid<D> {
             inv_cell: [0.0; D],
             periodic: [false; D],
             cell_start: Vec::new(),
+            pairs_in_cells: 0,
             cell_of: Vec::new(),
             order: Vec::new(),
             sorted: Vec::new(),
@@ -108,6 +112,33 @@ impl AxisCells {
 impl<const D: usize> Grid<D> {
     pub fn len(&self) -> usize {
         self.len
+    }
+
+    /// Edges sure to exist: all pairs within each cell whose particles are tight (see
+    /// [`tight`]), worked out only when the cells could hold more than `limit` pairs.
+    pub fn sure_edges(&self, r2: f64, self_edges: bool, limit: u64) -> u64 {
+        if self.pairs_in_cells <= limit {
+            return 0;
+        }
+        let mut sure = 0;
+        for w in self.cell_start.windows(2) {
+            let (a, b) = (w[0] as usize, w[1] as usize);
+            if b - a < 2 {
+                continue;
+            }
+            let mut lo = [f64::INFINITY; D];
+            let mut hi = [f64::NEG_INFINITY; D];
+            for d in 0..D {
+                for &x in &self.sorted[d * self.len + a..d * self.len + b] {
+                    lo[d] = lo[d].min(x);
+                    hi[d] = hi[d].max(x);
+                }
+            }
+            if tight(&lo, &hi, r2) {
+                sure += clump_edges(b - a, self_edges);
+            }
+        }
+        sure
     }
 
     /// Indexes particles start..end; false when the grid would be far too sparse.
@@ -194,6 +225,7 @@ impl<const D: usize> Grid<D> {
         // Histograms to cursors: cell by cell, part by part.
         self.cell_start.resize(n_cells + 1, 0);
         let mut acc = 0u32;
+        self.pairs_in_cells = 0;
         for c in 0..n_cells {
             self.cell_start[c] = acc;
             for t in 0..parts {
@@ -201,6 +233,8 @@ impl<const D: usize> Grid<D> {
                 self.cursor[t * n_cells + c] = acc;
                 acc += h;
             }
+            let m = (acc - self.cell_start[c]) as u64;
+            self.pairs_in_cells += m * m;
         }
         self.cell_start[n_cells] = acc;
         self.order.resize(len + CHUNK_SLACK, 0);

@@ -327,7 +327,34 @@ pub(crate) struct Found {
     pub ids: Vec<u32>,
 }
 
+/// Edges among `m` particles that are all within the radius of each other.
+pub(crate) fn clump_edges(m: usize, self_edges: bool) -> u64 {
+    let m = m as u64;
+    m * m - if self_edges { 0 } else { m }
+}
+
+/// Whether a box of these extents is "tight": its diagonal is at most half the radius, so
+/// every pair inside is an edge whatever the rounding of the exact test.
+pub(crate) fn tight<const D: usize>(lo: &[f64; D], hi: &[f64; D], r2: f64) -> bool {
+    let diag2: f64 = (0..D).map(|d| (hi[d] - lo[d]) * (hi[d] - lo[d])).sum();
+    diag2 <= 0.25 * r2
+}
+
 impl GraphIndex {
+    /// A lower bound on this graph's edges from tight clumps of particles (see [`tight`]),
+    /// worked out only when the particles could make more than `limit` edges at all; 0
+    /// otherwise. It lets a clump past max_edges fail at once instead of after collecting
+    /// `limit` edges (a gigabyte at the default).
+    fn sure_edges(&self, r2: f64, self_edges: bool, limit: u64) -> u64 {
+        match self {
+            GraphIndex::Cells2(g) => g.sure_edges(r2, self_edges, limit),
+            GraphIndex::Cells3(g) => g.sure_edges(r2, self_edges, limit),
+            GraphIndex::Tree2(t) => t.sure_edges(r2, self_edges, limit),
+            GraphIndex::Tree3(t) => t.sure_edges(r2, self_edges, limit),
+            GraphIndex::Brute { .. } => 0,
+        }
+    }
+
     fn len(&self) -> usize {
         match self {
             GraphIndex::Cells2(g) => g.len(),
@@ -541,6 +568,17 @@ impl Searcher {
         let mut offsets = std::mem::take(&mut self.offsets);
         let result = self.install(|| {
             build_indices(&prepared, opts.method, &mut indices);
+            let (r2, max_edges) = (prepared.metric.r2, opts.max_edges);
+            let sure: u64 = indices
+                .iter()
+                .map(|index| index.sure_edges(r2, opts.self_edges, max_edges))
+                .sum();
+            if sure > max_edges {
+                return Err(Error::TooManyEdges {
+                    at_least: sure,
+                    max_edges,
+                });
+            }
             let tasks = tasks(&indices);
             let found = Collect {
                 prepared: &prepared,
@@ -1263,6 +1301,61 @@ mod tests {
                 assert!(at_least > 1_000_000 && max_edges == 1_000_000);
             }
             other => panic!("expected TooManyEdges, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_tight_clump_past_max_edges_fails_before_the_search() {
+        // 20k coincident particles: the check counts all 4e8 pairs up front, where the
+        // search's own guard would stop a little past max_edges.
+        let pts = vec![0.5; 2 * 20_000];
+        for (method, self_edges) in [(Method::Cells, true), (Method::KdTree, false)] {
+            let opts = GraphOptions {
+                max_edges: 1_000_000,
+                method,
+                self_edges,
+                ..GraphOptions::new(0.1)
+            };
+            let expected = 20_000u64 * 20_000 - if self_edges { 0 } else { 20_000 };
+            match radius_graph(&pts, 2, None, &opts, false) {
+                Err(Error::TooManyEdges { at_least, .. }) => assert_eq!(at_least, expected),
+                other => panic!("expected TooManyEdges, got {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn the_clump_check_never_counts_more_than_the_real_edges() {
+        // Clumps of 40-400 particles (some tight, some wider than the radius) in a sparse
+        // cloud; each index's sure count (asked for whatever the limit) against brute force.
+        for (dim, seed) in [(2, 1), (3, 2), (2, 3)] {
+            let mut pts = random_points(100, dim, seed, 1.0);
+            for (k, spread) in [(40, 0.0), (400, 1e-3), (120, 0.04), (300, 0.2)] {
+                let centre = random_points(1, dim, seed + k as u64, 1.0);
+                let jitter = random_points(k, dim, seed + 7 * k as u64, spread);
+                pts.extend(jitter.iter().enumerate().map(|(i, x)| centre[i % dim] + x));
+            }
+            let n = pts.len() / dim;
+            for method in [Method::Cells, Method::KdTree] {
+                for self_edges in [true, false] {
+                    let opts = GraphOptions {
+                        method,
+                        self_edges,
+                        ..GraphOptions::new(0.05)
+                    };
+                    let exact = naive(&pts, dim, &[0, n], &opts).len() as u64;
+                    let prepared = prepare(&pts, dim, None, &opts).unwrap();
+                    let mut indices = Vec::new();
+                    build_indices(&prepared, method, &mut indices);
+                    let sure = indices[0].sure_edges(prepared.metric.r2, self_edges, 0);
+                    assert!(sure > 0 && sure <= exact, "{method:?}: {sure} vs {exact}");
+                    // Below the limit nothing is worked out.
+                    assert_eq!(
+                        indices[0].sure_edges(prepared.metric.r2, self_edges, 1 << 40),
+                        0
+                    );
+                }
+            }
         }
     }
 

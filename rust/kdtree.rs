@@ -2,7 +2,7 @@
 //! pruning. Slower than the grid at simulation densities, but indifferent to how the points are
 //! spread, so it serves sparse clouds, far outliers, and as a second opinion in tests.
 
-use crate::graph::{accept_at, Ctx, Found, Prepared};
+use crate::graph::{accept_at, clump_edges, tight, Ctx, Found, Prepared};
 
 const LEAF: usize = 12;
 const NO_CHILD: u32 = u32::MAX;
@@ -79,6 +79,26 @@ impl<const D: usize> KdTree<D> {
 
     pub fn len(&self) -> usize {
         self.items.len()
+    }
+
+    /// Edges sure to exist: all pairs within each largest tight node (see [`tight`]),
+    /// worked out only when the particles could make more than `limit` edges.
+    pub fn sure_edges(&self, r2: f64, self_edges: bool, limit: u64) -> u64 {
+        let n = self.items.len() as u64;
+        if n * n <= limit || self.nodes.is_empty() {
+            return 0;
+        }
+        let (mut sure, mut stack) = (0, vec![0u32]);
+        while let Some(id) = stack.pop() {
+            let node = &self.nodes[id as usize];
+            if tight(&node.lo, &node.hi, r2) {
+                sure += clump_edges((node.end - node.start) as usize, self_edges);
+            } else if node.left != NO_CHILD {
+                stack.push(node.left);
+                stack.push(node.right);
+            }
+        }
+        sure
     }
 
     pub fn original(&self, p: usize) -> usize {
