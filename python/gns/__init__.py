@@ -18,6 +18,7 @@ from gns.ops import (
 
 # Name -> module of the torch-based API, loaded lazily (PEP 562).
 _LAZY = {
+    "CConv": "gns.cconv",
     "Config": "gns.config",
     "load_config": "gns.config",
     "EncodeProcessDecode": "gns.model",
@@ -30,6 +31,7 @@ _LAZY = {
 
 __all__ = [
     "DEFAULT_MAX_EDGES",
+    "CConv",
     "Config",
     "EncodeProcessDecode",
     "LearnedSimulator",

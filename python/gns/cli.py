@@ -21,7 +21,8 @@ def build_parser() -> argparse.ArgumentParser:
         "train",
         help="train a GNS on a dataset (train split; validates on valid)",
         description="Checkpoints, train.csv / valid.csv and TensorBoard logs go to --out. "
-        "Several processes: torchrun --nproc_per_node K -m gns train ...",
+        "[model] kind = 'cconv' in the config trains the CConv baseline (section D.1) "
+        "instead. Several processes: torchrun --nproc_per_node K -m gns train ...",
     )
     train.add_argument("--data", type=Path, required=True, help="dataset folder")
     train.add_argument("--out", type=Path, required=True, help="run folder")
@@ -112,7 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser(
         "report",
         help="rollout error against run time per frame: GNS, the reference simulator, baseline",
-        description="Rolls out each checkpoint on the split (timed), re-runs the reference MPM "
+        description="Rolls out each checkpoint on the split (timed; GNS and CConv checkpoints "
+        "alike, one row each, named by their model), re-runs the reference MPM "
         "simulator at native and cheaper settings when the dataset was made by `gns generate`, "
         "scores them and the constant-velocity baseline (MSE, optimal transport, MMD at "
         "several horizons), and writes report.md / report.html, table.{md,csv,json}, "

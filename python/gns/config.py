@@ -1,6 +1,8 @@
 """Settings as frozen dataclasses with the paper's defaults, loaded from TOML, never executed.
 
-    [model]          the encoder-processor-decoder (section C.1)
+    [model]          the network: the GNS's encoder-processor-decoder (section C.1), or with
+                     kind = "cconv" the continuous-convolution baseline of section D.1, whose
+                     own settings are [model.cconv]
     [noise]          input noise (sections B.3 and C.2)
     [normalization]  running statistics (B.2) or the dataset's metadata.json
     [scene]          how a dataset's facts become the model's inputs (walls, context, ...)
@@ -30,7 +32,10 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 __all__ = [
+    "CConvConfig",
     "Config",
+    "MODEL_KINDS",
+    "MODEL_NAMES",
     "ModelConfig",
     "NoiseConfig",
     "NormalizationConfig",
@@ -47,6 +52,13 @@ NoiseType = Literal["random_walk", "only_last", "correlated", "uncorrelated"]
 NormalizationSource = Literal["running", "metadata"]
 Implementation = Literal["fast", "plain"]
 Precision = Literal["auto", "fp32", "bf16"]
+ModelKind = Literal["gns", "cconv"]
+MODEL_KINDS = ("gns", "cconv")
+# How reports and logs name each kind of model.
+MODEL_NAMES = {"gns": "GNS", "cconv": "CConv"}
+CoordinateMapping = Literal["ball_to_cube_volume_preserving", "ball_to_cube_radial", "identity"]
+COORDINATE_MAPPINGS = ("ball_to_cube_volume_preserving", "ball_to_cube_radial", "identity")
+Window = Literal["poly6", "none"]
 
 
 def _positive(owner: object, *names: str) -> None:
@@ -57,8 +69,80 @@ def _positive(owner: object, *names: str) -> None:
 
 
 @dataclass(frozen=True)
+class CConvConfig:
+    """The continuous convolutions of Ummenhofer et al. (2020), section D.1's CConv baseline
+    (model.kind = "cconv"; see gns.cconv).
+
+    layer_channels: the output width of every layer but the last, whose width is D (the
+        acceleration): (32, 64, 64) is the original's 32/64/64/3. The first layer runs a
+        convolution and a dense layer side by side, each layer_channels[0] wide, and
+        concatenates them.
+    kernel_size: cells per axis of the grid of weight matrices (4: 4 x 4 in 2D, 4 x 4 x 4 in
+        3D, as the original).
+    coordinate_mapping: Lambda, how a displacement / R (in the unit ball) is placed in the
+        kernel's cube [-1, 1]^D before interpolating: "ball_to_cube_volume_preserving" (the
+        original's: equal volumes of the ball get equal shares of the cells),
+        "ball_to_cube_radial" (radial stretching) or "identity" (the ball's corners unused).
+    window: a(x_j, x_i), the weight of a neighbour by distance: "poly6", (1 - r^2)^3 with
+        r = |x_j - x_i| / R (the original's; smooth as neighbours enter and leave), or "none".
+    normalize: divide each receiver's sum by its number of neighbours, psi(x_i); the original
+        (and D.1) set psi = 1.
+    """
+
+    layer_channels: tuple[int, ...] = (32, 64, 64)
+    kernel_size: int = 4
+    coordinate_mapping: CoordinateMapping = "ball_to_cube_volume_preserving"
+    window: Window = "poly6"
+    normalize: bool = False
+
+    def __post_init__(self) -> None:
+        if not self.layer_channels or any(
+            isinstance(c, bool) or not isinstance(c, int) or c < 1 for c in self.layer_channels
+        ):
+            raise ValueError(
+                "CConvConfig.layer_channels must be one or more positive widths, got "
+                f"{list(self.layer_channels)}"
+            )
+        if isinstance(self.kernel_size, bool) or not (
+            isinstance(self.kernel_size, int) and self.kernel_size >= 1
+        ):
+            raise ValueError(
+                f"CConvConfig.kernel_size must be a whole number >= 1, got {self.kernel_size!r}"
+            )
+        if self.coordinate_mapping not in COORDINATE_MAPPINGS:
+            raise ValueError(
+                f"CConvConfig.coordinate_mapping must be one of {list(COORDINATE_MAPPINGS)}, "
+                f"got {self.coordinate_mapping!r}"
+            )
+        if self.window not in ("poly6", "none"):
+            raise ValueError(f"CConvConfig.window must be 'poly6' or 'none', got {self.window!r}")
+
+
+# ModelConfig fields that only the GNS reads: set with kind = "cconv" they would do nothing.
+GNS_ONLY = (
+    "latent_size",
+    "mlp_hidden_size",
+    "mlp_hidden_layers",
+    "message_passing_steps",
+    "layer_norm",
+    "mlp_encoder_decoder",
+    "global_latent",
+    "edge_latent_updates",
+    "torch_compile",
+)
+
+
+@dataclass(frozen=True)
 class ModelConfig:
-    """The encoder-processor-decoder and its section C.1 options.
+    """The network: the encoder-processor-decoder and its section C.1 options, or CConv.
+
+    kind: "gns" (EncodeProcessDecode) or "cconv" (section D.1's baseline, gns.cconv.CConv,
+        set up by `cconv`). Both read the same features and predict the same normalised
+        acceleration, so everything around the network is shared. With "cconv", setting a
+        GNS-only field is an error, as is setting `cconv` with "gns": a setting that would do
+        nothing fails loudly. Shared by both: velocity_history, self_edges, add_gravity,
+        particle_type_embedding_size, implementation and precision (for CConv "fast" sums over
+        neighbourhoods with one sparse matrix, "plain" with index_add_; see gns.cconv).
 
     velocity_history: C, the number of input velocities (the model reads C + 1 positions).
     mlp_encoder_decoder: False replaces the encoder and decoder MLPs by single linear layers.
@@ -94,8 +178,27 @@ class ModelConfig:
     implementation: Implementation = "fast"
     precision: Precision = "auto"
     torch_compile: bool = False
+    kind: ModelKind = "gns"
+    cconv: CConvConfig = field(default_factory=CConvConfig)
 
     def __post_init__(self) -> None:
+        if self.kind not in MODEL_KINDS:
+            raise ValueError(
+                f"ModelConfig.kind must be one of {list(MODEL_KINDS)}, got {self.kind!r}"
+            )
+        defaults = {f.name: f.default for f in dataclasses.fields(self)}
+        if self.kind == "cconv":
+            changed = [name for name in GNS_ONLY if getattr(self, name) != defaults[name]]
+            if changed:
+                raise ValueError(
+                    f"model.{', model.'.join(changed)}: GNS settings, but model.kind is 'cconv' "
+                    "(whose settings are model.cconv); remove them or set model.kind = 'gns'"
+                )
+        elif self.cconv != CConvConfig():
+            raise ValueError(
+                f"model.cconv shapes the CConv only, but model.kind is {self.kind!r}; set "
+                "model.kind = 'cconv' or remove model.cconv"
+            )
         _positive(
             self,
             "latent_size",
@@ -215,6 +318,13 @@ class TrainConfig:
         100 steps (once there are 20) is reported as a loss spike, on stderr and in spikes.csv,
         with the batch's windows; training goes on. 0 turns the check off. (Non-finite losses
         and gradients always stop training.)
+    loss_steps: the loss of each window adds up this many steps: the first from the (noisy)
+        input as always, each later one from the model's own prediction fed back, so the
+        gradient runs through the predictions (Ummenhofer et al. 2020 train CConv on 2, and
+        input noise stays on). 1, the GNS paper's loss, by default. Windows are then
+        loss_steps - 1 frames longer; the step context is taken at a window's last input frame
+        and serves every step (where it changes within a trajectory, the earlier steps see the
+        context of a frame up to loss_steps - 1 frames after their own).
     """
 
     steps: int = 20_000_000
@@ -234,6 +344,7 @@ class TrainConfig:
     seed: int = 0
     mirror_axes: tuple[int, ...] = ()
     spike_factor: float = 10.0
+    loss_steps: int = 1
 
     def __post_init__(self) -> None:
         _positive(
@@ -246,6 +357,7 @@ class TrainConfig:
             "log_every",
             "checkpoint_every",
             "keep_checkpoints",
+            "loss_steps",
         )
         if not 0 <= self.learning_rate_final <= self.learning_rate:
             raise ValueError(

@@ -3,7 +3,9 @@
     report("runs/sand", "data/sand", split="test", checkpoints=["best", "latest"])
 
 One row per method, each scored on the same frames of the same held-out trajectories:
-  GNS                 each checkpoint given, rolled out from the first C + 1 ground-truth frames;
+  GNS / CConv         each checkpoint given, rolled out from the first C + 1 ground-truth frames
+                      (the row is named after the checkpoint's model.kind, so GNS and CConv
+                      checkpoints can be compared side by side);
                       its time split into graph building, features, model and integration
                       (gns.rollout times every step) and the device it ran on
   MPM                 the reference simulator (gns.mpm) that made the data, re-run at its native
@@ -51,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from gns.config import MODEL_NAMES
 from gns.data.atomic import write_bytes_atomic
 from gns.machine import cpu_name
 from gns.metrics import constant_velocity_rollout, evaluate_rollout
@@ -373,14 +376,16 @@ def _learned_row(
         predictions.append(predicted)
         seconds.append(np.stack([result.timings[part] for part in TIMING_PARTS]))
     timings = np.concatenate(seconds, axis=1)  # (parts, all steps of all trajectories)
-    row = Row("GNS", setting, _device_label(device), short=f"GNS {setting}")
+    name = MODEL_NAMES[simulator.config.model.kind]
+    row = Row(name, setting, _device_label(device), short=f"{name} {setting}")
     if timings.shape[1]:
         # Means, not medians: the parts' means add up to the mean total.
         row.split = {part: float(timings[i].mean()) for i, part in enumerate(TIMING_PARTS)}
         row.seconds_per_frame = float(timings.sum(axis=0).mean())
     row.add_scores(scores)
     if diverged:
-        row.status = "diverged (non-finite positions): " + ", ".join(diverged)
+        # gns.rollout stops at a non-finite position or at a particle far outside the domain.
+        row.status = "diverged (non-finite or escaped particles): " + ", ".join(diverged)
     return row, predictions
 
 
@@ -703,7 +708,7 @@ def report(
             history,
             split,
             dataset.metadata,
-            rows[0].setting,
+            rows[0].short,
             animation_frames,
             vtk_every,
             left_out,
@@ -809,13 +814,14 @@ def _write_media(
     history: int,
     split: str,
     metadata: Any,
-    setting: str,
+    label: str,
     animation_frames: int,
     vtk_every: int,
     left_out: list[str],
     say: Callable[[str], None],
 ) -> dict[str, Path]:
-    """The animation and VTK files of one trajectory and the first checkpoint's prediction."""
+    """The animation and VTK files of one trajectory and the first checkpoint's prediction
+    (`label`: the row's, e.g. "GNS best.pt (step 2000)")."""
     from gns.plots import animation
     from gns.vtk import write_series
 
@@ -836,7 +842,7 @@ def _write_media(
             trajectory.particle_type,
             gif,
             bounds=metadata.bounds,
-            titles=(f"ground truth{projection}", f"GNS {setting}{projection}"),
+            titles=(f"ground truth{projection}", f"{label}{projection}"),
             first_predicted=history,
             dt=metadata.dt,
             max_frames=animation_frames,

@@ -8,8 +8,8 @@
     save_deepmind_pickle            DeepMind learning_to_simulate's rollout pickle layout
 
 Every step is timed in four parts: "graph" (the Rust radius graph), "features" (the rest of the
-preprocess), "model" (EncodeProcessDecode) and "integration" (decoder postprocess, i.e.
-de-normalisation and the Euler update, plus the kinematic override).
+preprocess), "model" (the network: EncodeProcessDecode or CConv) and "integration" (decoder
+postprocess, i.e. de-normalisation and the Euler update, plus the kinematic override).
 
 A non-finite prediction stops the rollout with `RolloutDiverged`, which carries the finite part;
 NaN never travels on into later steps, metrics or files.

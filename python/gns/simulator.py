@@ -1,8 +1,10 @@
-"""LearnedSimulator: positions in, positions out, with EncodeProcessDecode in between.
+"""LearnedSimulator: positions in, positions out, with the network (EncodeProcessDecode, or the
+CConv baseline of section D.1 when model.kind = "cconv") in between.
 
     preprocess   position sequence (N, C + 1, D) -> velocities, radius graph (Rust), wall and
                  obstacle distances, type embedding, context -> normalised node / edge features
-    model        EncodeProcessDecode -> normalised acceleration (N, D)
+    model        EncodeProcessDecode or CConv -> normalised acceleration (N, D); both read the
+                 same node and edge features (CConv takes its displacements from the edges')
     postprocess  de-normalise (+ gravity) -> semi-implicit Euler with dt = 1 frame -> (N, D)
 
 `target_normalized_acceleration` is the inverse of the postprocess, next to its twin.
@@ -24,6 +26,7 @@ import torch
 from torch import Tensor, nn
 
 import gns.ops as ops
+from gns.cconv import CConv
 from gns.config import Config, SceneConfig
 from gns.model import EncodeProcessDecode
 from gns.noise import sample_noise
@@ -179,7 +182,8 @@ def _as_rows(x: Tensor | np.ndarray | float, rows: int, width: int, name: str) -
 
 
 class LearnedSimulator(nn.Module):
-    """The GNS: features from positions, EncodeProcessDecode, Euler update.
+    """The GNS: features from positions, EncodeProcessDecode (or CConv, by model.kind), Euler
+    update.
 
     scene: the dataset's facts (Scene.from_metadata / from_dataset).
     config: gns.config.Config (model, noise and normalisation sections are used here).
@@ -254,9 +258,13 @@ class LearnedSimulator(nn.Module):
             + embedding_size
         )
         self.edge_input_size = dim + 1
-        self.model = EncodeProcessDecode(
-            self.node_input_size, self.edge_input_size, dim, model_config, global_size
-        )
+        self.model: EncodeProcessDecode | CConv
+        if model_config.kind == "cconv":
+            self.model = CConv(self.node_input_size, dim, model_config)
+        else:
+            self.model = EncodeProcessDecode(
+                self.node_input_size, self.edge_input_size, dim, model_config, global_size
+            )
 
     # ------------------------------------------------------------------ construction helpers
 
@@ -389,6 +397,8 @@ class LearnedSimulator(nn.Module):
     ) -> dict[str, Tensor | None]:
         """The model's inputs: node_features, edge_features, senders, receivers,
         global_features (None unless the model has a global latent and the scene a context).
+        edge_features (E, D + 1) are the displacements x[senders] - x[receivers] divided by the
+        radius, then their length; CConv reads its kernel coordinates from the first D columns.
 
         graph: `self.graph(position_sequence[:, -1], n_node)` computed by the caller, so that
         the radius search can be timed on its own (gns.rollout); default: computed here.

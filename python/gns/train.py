@@ -2,7 +2,10 @@
 
 One gradient step (`TrainingStep.forward`): sample the input noise (C.2), add the batch to the
 running statistics (B.2), predict the normalised acceleration, and take the squared error summed
-over dimensions and averaged over the non-kinematic particles of the whole (global) batch.
+over dimensions and averaged over the non-kinematic particles of the whole (global) batch; with
+train.loss_steps = K > 1, plus the errors of K - 1 further steps predicted from the model's own
+predictions (the multi-step loss CConv was trained with). The network is the GNS or, with
+model.kind = "cconv", section D.1's CConv baseline; checkpoints hold the config, which names it.
 Adam with lr(j) = final + (start - final) * 0.1^(j / decay_steps).
 
 Runs as one process or under torchrun (torch.distributed DDP: gloo on the CPU, nccl on CUDA).
@@ -104,11 +107,28 @@ def batch_tensors(batch: Batch, device: torch.device) -> dict[str, Tensor | None
     }
 
 
+def _split_targets(tensors: dict[str, Tensor | None], history: int) -> tuple[Tensor, Tensor]:
+    """The C + 1 input positions (N, C + 1, D) of a batch_tensors dict and the K target frames
+    after them (N, K, D); K > 1 when the windows are longer for a multi-step loss."""
+    sequence, last = tensors["position_sequence"], tensors["next_position"]
+    assert sequence is not None and last is not None
+    targets = torch.cat([sequence[:, history:], last[:, None]], dim=1)
+    return sequence[:, :history], targets
+
+
 class TrainingStep(nn.Module):
     """The loss of one batch, as a module so DDP's forward (and its gradient hooks) see it.
 
     forward returns (sum over non-kinematic particles of the squared acceleration error summed
     over dimensions, the number of those particles); the trainer divides by the global count.
+
+    With later_positions (N, K - 1, D), the ground truth of K - 1 further frames, the loss adds
+    K steps (TrainConfig.loss_steps, the multi-step loss of Ummenhofer et al. 2020): each
+    later step is predicted from the sequence with the previous prediction appended (kinematic
+    particles: the ground truth), its target is the acceleration that reaches the ground truth
+    shifted by the same kept input noise as the first step's target, and the gradient runs back
+    through the predictions. The acceleration error of a later step is then its position error
+    (in normalised units), as in the original's position loss.
     """
 
     def __init__(self, simulator: LearnedSimulator) -> None:
@@ -124,8 +144,10 @@ class TrainingStep(nn.Module):
         n_node: Tensor | None = None,
         context: Tensor | None = None,
         material_property: Tensor | None = None,
+        later_positions: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
-        predicted, target = self.simulator.predict_accelerations(
+        simulator = self.simulator
+        predicted, target = simulator.predict_accelerations(
             next_position,
             position_sequence,
             position_sequence_noise,
@@ -134,8 +156,22 @@ class TrainingStep(nn.Module):
             context,
             material_property,
         )
-        free = ~self.simulator.kinematic_mask(particle_type)
+        free = ~simulator.kinematic_mask(particle_type)
         squared = (predicted.float() - target.float()).square().sum(dim=-1)
+        if later_positions is not None:
+            kinematic = ~free[:, None]
+            sequence = position_sequence + position_sequence_noise
+            truth = next_position
+            for k in range(later_positions.shape[1]):
+                reached = simulator.decoder_postprocess(predicted, sequence)
+                reached = torch.where(kinematic, truth.to(reached.dtype), reached)
+                sequence = torch.cat([sequence[:, 1:], reached[:, None].to(sequence.dtype)], 1)
+                truth = later_positions[:, k]
+                predicted = simulator(sequence, particle_type, n_node, context, material_property)
+                target = simulator.target_normalized_acceleration(
+                    truth, sequence, position_sequence_noise
+                )
+                squared = squared + (predicted.float() - target.float()).square().sum(dim=-1)
         return squared[free].sum(), free.sum()
 
 
@@ -555,7 +591,8 @@ def train(
     progress: bool = True,
     time_limit: float | None = None,
 ) -> LearnedSimulator:
-    """Train a GNS on the dataset at `data` (train split; validation on valid) into run_dir.
+    """Train a GNS (or CConv, by config.model.kind) on the dataset at `data` (train split;
+    validation on valid) into run_dir.
 
     resume=True continues from the newest checkpoint in run_dir with its saved settings (the
     `config` argument must then be None or differ only in train.steps, to train for longer):
@@ -634,9 +671,10 @@ def train(
             step_module, device_ids=ids, broadcast_buffers=False
         )
     optimizer = torch.optim.Adam(simulator.parameters(), lr=tc.learning_rate)
+    # loss_steps - 1 more frames per window: the ground truth of the later steps.
     sampler = WindowSampler(
         dataset,
-        history,
+        history + tc.loss_steps - 1,
         seed=tc.seed,
         trajectories_in_memory=tc.trajectories_in_memory,
         rank=rank,
@@ -735,19 +773,22 @@ def train(
                 rng = np.random.default_rng([tc.seed, step, rank])
                 batch = mirror_batch(batch, tc.mirror_axes, simulator.scene.bounds, rng)
             t = batch_tensors(batch, device)
+            sequence, targets = _split_targets(t, history)
             noise = simulator.sample_noise(
-                t["position_sequence"],  # type: ignore[arg-type]
+                sequence,
                 t["particle_type"],  # type: ignore[arg-type]
                 generator,
             )
+            later = (targets[:, 1:],) if tc.loss_steps > 1 else ()
             squared_sum, count = step_module(
-                t["position_sequence"],
-                t["next_position"],
+                sequence,
+                targets[:, 0],
                 noise,
                 t["particle_type"],
                 t["n_node"],
                 t["context"],
                 t["material_property"],
+                *later,
             )
             count = count.to(squared_sum.dtype)
             if world > 1:
