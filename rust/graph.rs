@@ -18,6 +18,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 pub const DEFAULT_MAX_EDGES: u64 = 1 << 28;
 /// Below this many particles one thread beats waking a pool.
 const SERIAL_BELOW: usize = 2048;
+/// A periodic box at most 2^20 radii long: positions wrapped into [0, L) are then rounded by
+/// at most 2^-32 radii (one ulp of L), far below any distance the search tells apart.
+const MAX_PERIODIC_RADII: f64 = (1u64 << 20) as f64;
 /// Queries per parallel task at most: small enough to balance clumps, large enough to
 /// amortise; smaller inputs get smaller tasks, so that every thread has several.
 const TASK: usize = 512;
@@ -137,6 +140,12 @@ pub(crate) struct Prepared {
 fn validate_options(dim: usize, opts: &GraphOptions) -> Result<Metric> {
     let r = opts.radius;
     check_positive("radius", r)?;
+    if !(r * r).is_finite() {
+        // Distances are compared squared: an infinite r^2 would accept every pair.
+        return Err(Error::Value(format!(
+            "radius = {r:e} is too large: its square overflows (at most about 1.3e154)"
+        )));
+    }
     let mut periodic = [false; 3];
     if !opts.periodic.is_empty() {
         if opts.periodic.len() != dim {
@@ -159,6 +168,13 @@ fn validate_options(dim: usize, opts: &GraphOptions) -> Result<Metric> {
             }
             for (d, &l) in b.iter().enumerate() {
                 check_positive(&format!("box length on axis {d}"), l)?;
+                if periodic[d] && l > MAX_PERIODIC_RADII * r {
+                    return Err(Error::Value(format!(
+                        "box length {l:e} on periodic axis {d} is more than {MAX_PERIODIC_RADII:e} \
+                         radii ({r:e}); positions wrapped into it would be rounded by more \
+                         than 2^-32 radii"
+                    )));
+                }
                 if periodic[d] && l < 2.0 * r {
                     return Err(Error::Value(format!(
                         "box length {l} on periodic axis {d} is narrower than 2 * radius = {}; \
@@ -1371,7 +1387,7 @@ mod tests {
         assert!(err(&[0.0, f64::INFINITY], 2, None, GraphOptions::new(1.0)).contains("inf"));
         assert!(err(&ok, 4, None, GraphOptions::new(1.0)).contains("2 or 3"));
         assert!(err(&ok[..3], 2, None, GraphOptions::new(1.0)).contains("multiple"));
-        for r in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        for r in [0.0, -1.0, f64::NAN, f64::INFINITY, 1.4e154] {
             assert!(err(&ok, 2, None, GraphOptions::new(r)).contains("radius"));
         }
         assert!(err(&ok, 2, Some(&[1, 2]), GraphOptions::new(1.0)).contains("sums to 3"));
@@ -1383,6 +1399,8 @@ mod tests {
         };
         assert!(err(&ok, 2, None, periodic(None)).contains("need a box"));
         assert!(err(&ok, 2, None, periodic(Some(vec![1.5, 1.0]))).contains("narrower"));
+        // Found by fuzzing: -1.5 wrapped into a box of 1.8e16 rounded onto 0, one radius away.
+        assert!(err(&ok, 2, None, periodic(Some(vec![1.8e16, 1.0]))).contains("2^-32 radii"));
         assert!(err(&ok, 2, None, periodic(Some(vec![2.0]))).contains("one length per axis"));
         assert!("octree"
             .parse::<Method>()

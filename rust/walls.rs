@@ -99,6 +99,20 @@ pub enum Obstacle {
     Shape3(Box<dyn p3::shape::Shape>),
 }
 
+/// Obstacle coordinates and the obstacle radius stay within this magnitude: parry measures
+/// squared distances, which overflow (and once made it panic) near 1e154.
+pub const MAX_OBSTACLE_COORDINATE: f64 = 1e100;
+
+fn check_magnitude(what: &str, values: &[f64]) -> Result<()> {
+    match values.iter().find(|v| v.abs() > MAX_OBSTACLE_COORDINATE) {
+        Some(v) => Err(Error::Value(format!(
+            "{what} has the value {v:e}; obstacle coordinates must lie within \
+             +-{MAX_OBSTACLE_COORDINATE:e}"
+        ))),
+        None => Ok(()),
+    }
+}
+
 fn points<const D: usize>(what: &str, values: &[f64]) -> Result<Vec<[f64; D]>> {
     if values.is_empty() || values.len() % D != 0 {
         return Err(Error::Shape(format!(
@@ -112,6 +126,7 @@ fn points<const D: usize>(what: &str, values: &[f64]) -> Result<Vec<[f64; D]>> {
             values[k * D + d]
         )));
     }
+    check_magnitude(what, values)?;
     Ok(values
         .chunks_exact(D)
         .map(|c| {
@@ -161,6 +176,8 @@ impl Obstacle {
         if let Some(c) = center.iter().find(|c| !c.is_finite()) {
             return Err(Error::NonFinite(format!("center must be finite, got {c}")));
         }
+        check_magnitude("center", center)?;
+        check_magnitude("half_extents", half_extents)?;
         Ok(if center.len() == 2 {
             let shape =
                 p2::shape::Cuboid::new(p2::math::Vector::new(half_extents[0], half_extents[1]));
@@ -212,6 +229,20 @@ impl Obstacle {
         }
     }
 
+    /// The obstacle's bounding box, (lower, upper) corners (the third axis 0 in 2D).
+    fn bounds(&self) -> ([f64; 3], [f64; 3]) {
+        match self {
+            Obstacle::Shape2(s) => {
+                let b = s.compute_local_aabb();
+                ([b.mins.x, b.mins.y, 0.0], [b.maxs.x, b.maxs.y, 0.0])
+            }
+            Obstacle::Shape3(s) => {
+                let b = s.compute_local_aabb();
+                ([b.mins.x, b.mins.y, b.mins.z], [b.maxs.x, b.maxs.y, b.maxs.z])
+            }
+        }
+    }
+
     /// The point of the obstacle's surface nearest to x (a point inside a solid obstacle is
     /// projected onto its surface, so penetration still points the way out).
     fn nearest(&self, x: &[f64]) -> [f64; 3] {
@@ -252,6 +283,12 @@ pub fn obstacle_features<T: Real>(
 ) -> Result<Vec<T>> {
     let n = check_positions(positions, dim)?;
     check_positive("radius", radius)?;
+    if radius > MAX_OBSTACLE_COORDINATE {
+        return Err(Error::Value(format!(
+            "radius = {radius:e}; obstacle features need a radius of at most \
+             {MAX_OBSTACLE_COORDINATE:e}"
+        )));
+    }
     for (k, o) in obstacles.iter().enumerate() {
         if o.dim() != dim {
             return Err(Error::Shape(format!(
@@ -262,9 +299,17 @@ pub fn obstacle_features<T: Real>(
     }
     let width = obstacles.len() * dim;
     let mut out = vec![T::from_f64(0.0); n * width];
+    let boxes: Vec<_> = obstacles.iter().map(|o| o.bounds()).collect();
     for_rows(&mut out, width, |i, row| {
         let x: Vec<f64> = (0..dim).map(|d| positions[i * dim + d].to_f64()).collect();
         for (k, o) in obstacles.iter().enumerate() {
+            // Farther than the radius from the bounding box along some axis: the features are
+            // zero. Besides saving the projection, this keeps far particles (at any finite
+            // coordinate) out of parry's squared distances.
+            let (lo, hi) = boxes[k];
+            if (0..dim).any(|d| lo[d] - x[d] > radius || x[d] - hi[d] > radius) {
+                continue;
+            }
             let p = o.nearest(&x);
             let v: Vec<f64> = (0..dim).map(|d| (p[d] - x[d]) / radius).collect();
             if v.iter().map(|c| c * c).sum::<f64>() <= 1.0 {
@@ -316,5 +361,20 @@ mod tests {
         assert!((f[2] - 0.5).abs() < 1e-9 && f[0].abs() < 1e-12, "{f:?}");
         assert!(obstacle_features(&[0.0f64, 0.0], 2, &[&b], 0.1).is_err());
         assert!(Obstacle::trimesh(&[0.0; 9], &[0, 1, 3]).is_err());
+    }
+
+    #[test]
+    fn far_particles_and_huge_obstacles_neither_panic_nor_overflow() {
+        // Found by fuzzing: parry's projection panicked on a particle at 3.7e221.
+        let ramp = Obstacle::polyline(&[0.1, 0.1, 0.9, 0.3], false).unwrap();
+        let far = [-3.7e221f64, -4.9e15, 1e300, 1e300, 0.5, 0.25];
+        let f = obstacle_features(&far, 2, &[&ramp], 4e16).unwrap();
+        assert_eq!(&f[..4], &[0.0; 4]);
+        assert!(f[4].abs() < 1e-15 && (f[5] / f[4] + 4.0).abs() < 1e-9, "{f:?}");
+        let big = |r: Result<Vec<f64>>| r.unwrap_err().to_string();
+        assert!(big(obstacle_features(&far, 2, &[&ramp], 1e200)).contains("radius = 1e200"));
+        let err = Obstacle::polyline(&[0.0, 0.0, 1e200, 0.0], false).err().unwrap();
+        assert!(err.to_string().contains("1e200"), "{err}");
+        assert!(Obstacle::cuboid(&[1e101, 0.0], &[1.0, 1.0]).is_err());
     }
 }

@@ -68,6 +68,8 @@ def _n_node(n_node: Any) -> np.ndarray | None:
     if n_node is None:
         return None
     a = _to_numpy(n_node)
+    if a.ndim == 1 and a.size == 0:
+        a = a.astype(np.int64)  # np.asarray([]) is float64; no graphs is valid for N = 0
     if a.ndim != 1 or a.dtype.kind not in "iu":
         raise ValueError(f"n_node must be a 1-D array of integers, got {a.dtype} shape {a.shape}")
     return np.ascontiguousarray(a, dtype=np.int64)
