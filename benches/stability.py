@@ -159,45 +159,36 @@ def periodic_minimum_width() -> str:
     return f"box = 2R: {edges.shape[1]:,} edges equal to brute force; narrower: {message[:60]}"
 
 
+TESTS = Path(__file__).resolve().parents[1] / "tests"
+
+
+def pytest_passes(shown: str, *tests: str, **env: str) -> str:
+    """Runs tests of tests/ (file or file::name) in a child pytest; they must all pass, and
+    then `shown` (what they assert) is what happened. The training and fuzz cases live there,
+    where CI runs them, so they are written once."""
+    command = [sys.executable, "-m", "pytest", "-q", "-p", "no:warnings", "-p", "no:cacheprovider"]
+    t = time.perf_counter()
+    done = subprocess.run(
+        [*command, *(str(TESTS / test) for test in tests)],
+        cwd=TESTS.parent,
+        env={**os.environ, "OMP_NUM_THREADS": "1", **env},
+        capture_output=True,
+        text=True,
+    )
+    summary = (done.stdout.strip().splitlines() or ["no output"])[-1]
+    assert done.returncode == 0, f"{summary}\n{done.stdout[-3000:]}{done.stderr[-2000:]}"
+    return f"{shown} ({summary.strip('= ')}, {time.perf_counter() - t:.0f} s)"
+
+
 def fuzz_core() -> str:
-    """Random shapes, dtypes and values through every public function: each call returns or
-    raises ValueError/TypeError, never anything else (a crash would end the child)."""
-    rng = np.random.default_rng(4)
-    specials = [np.nan, np.inf, -np.inf, 1e308, -1e308, 0.0, 1e-308, 5e-324]
-    outcomes = {"returned": 0, "refused": 0}
-    segment = gns.Obstacle.polyline([[0.1, 0.1], [0.9, 0.3]])
-
-    def array() -> np.ndarray:
-        shape = [(int(rng.integers(0, 40)), int(rng.integers(0, 5)))][0]
-        if rng.random() < 0.1:
-            shape = (int(rng.integers(0, 5)),)
-        dtype = rng.choice([np.float32, np.float64, np.int64, np.float16])
-        a = (rng.normal(size=shape) * 10.0 ** rng.integers(-3, 8)).astype(dtype)
-        if a.size and rng.random() < 0.3:
-            a.flat[rng.integers(0, a.size)] = rng.choice(specials)
-        return a
-
-    def scalar() -> float:
-        return float(rng.choice([*specials, 0.1, 1.0, -0.5, 3.0]))
-
-    calls: list[Callable[[], object]] = [
-        lambda: gns.radius_graph(array(), scalar()),
-        lambda: gns.radius_graph(array(), scalar(), self_edges=False, method="kdtree"),
-        lambda: gns.radius_graph(array(), 0.2, box=[scalar(), scalar()], periodic=[True, False]),
-        lambda: gns.radius_graph(array(), 0.2, n_node=[int(rng.integers(-3, 30))]),
-        lambda: gns.RadiusSearcher(num_threads=int(rng.integers(1, 3)))(array(), scalar()),
-        lambda: gns.wall_features(array(), ((0.0, scalar()), (0.0, 1.0)), scalar()),
-        lambda: gns.obstacle_features(array(), [segment], scalar()),
-        lambda: gns.euler_step(array(), array(), array(), dt=scalar()),
-    ]
-    np.seterr(over="ignore", invalid="ignore")  # making absurd inputs is the point
-    for _ in range(3000):
-        try:
-            calls[int(rng.integers(len(calls)))]()
-            outcomes["returned"] += 1
-        except (ValueError, TypeError):
-            outcomes["refused"] += 1
-    return f"3000 random calls: {outcomes['returned']} returned, {outcomes['refused']} refused"
+    """tests/test_fuzz.py with 2000 random (not the CI's derandomized 150) examples per
+    function: every answer checked against numpy, ValueError exactly for invalid input."""
+    return pytest_passes(
+        "2000 examples per function: every result equal to the numpy oracle, ValueError "
+        "exactly for the invalid inputs, no panic or hang",
+        "test_fuzz.py",
+        GNS_FUZZ_EXAMPLES="2000",
+    )
 
 
 # ------------------------------------------------------------------- integrator and rollouts
@@ -403,6 +394,45 @@ def damaged_files() -> str:
     )
 
 
+# ------------------------------------------------------------------------------------ training
+
+ROBUST = "test_train_robust.py::"
+
+
+def non_finite_training() -> str:
+    return pytest_passes(
+        "stopped before the optimizer step, naming the step, the parameters and the batch's "
+        "windows; under DDP every rank stops",
+        ROBUST + "test_non_finite_loss_or_gradient_stops_before_the_optimizer_step",
+        ROBUST + "test_under_ddp_every_rank_stops_at_a_bad_batch_on_one_rank",
+    )
+
+
+def loss_spikes() -> str:
+    return pytest_passes(
+        "reported with its step, its size against the median and the batch's windows; "
+        "training goes on",
+        ROBUST + "test_loss_spikes_are_reported_with_their_batch_and_training_goes_on",
+    )
+
+
+def damaged_checkpoints() -> str:
+    return pytest_passes(
+        "each refused on load, naming the file and the problem (torch.load alone reads the "
+        "bit flip); resume falls back to the newest intact one",
+        ROBUST + "test_load_checkpoint_detects_truncated_corrupted_and_incomplete_files",
+        ROBUST + "test_resume_falls_back_past_a_corrupted_newest_checkpoint",
+    )
+
+
+def killed_and_resumed() -> str:
+    return pytest_passes(
+        "every checkpoint intact; resumed from the newest, ends bit for bit equal to an "
+        "uninterrupted run",
+        ROBUST + "test_a_run_killed_at_a_random_moment_resumes_exactly",
+    )
+
+
 CASES = [
     Case("core", "1M particles", "3D, 1M uniform points, ~14 neighbours", million_particles, False),
     Case("core", "one point", "1e5 particles all at one point", one_point),
@@ -413,7 +443,14 @@ CASES = [
     Case(
         "core", "periodic 2R", "periodic box exactly 2R wide, and narrower", periodic_minimum_width
     ),
-    Case("core", "fuzz", "random arrays and scalars through every public function", fuzz_core),
+    Case(
+        "core",
+        "fuzz",
+        "hypothesis: random arrays and scalars through every public function",
+        fuzz_core,
+        quick=False,  # CI runs tests/test_fuzz.py itself
+        timeout=900,
+    ),
     Case(
         "integrator", "huge accelerations", "euler_step with 1e30 and overflow", huge_accelerations
     ),
@@ -426,6 +463,32 @@ CASES = [
     Case("mpm", "fast, corner", "40 m/s block; block in a corner", fast_and_cornered, timeout=120),
     Case("mpm", "time steps", "frame_dt 1e-7, 10 s and -1", time_steps),
     Case("data", "damaged files", "truncated and bit-flipped files, every reader", damaged_files),
+    # The training rows run tests/test_train_robust.py, which CI runs itself: not quick.
+    Case(
+        "training",
+        "non-finite",
+        "a NaN loss, a NaN gradient; a bad batch on one of 2 DDP ranks",
+        non_finite_training,
+        quick=False,
+        timeout=300,
+    ),
+    Case("training", "loss spike", "a loss 1000x its median", loss_spikes, False, 120),
+    Case(
+        "training",
+        "damaged checkpoints",
+        "truncated, bit-flipped, empty, incomplete checkpoints; resume past them",
+        damaged_checkpoints,
+        quick=False,
+        timeout=300,
+    ),
+    Case(
+        "training",
+        "kill -9",
+        "training killed at a random step, then --resume",
+        killed_and_resumed,
+        quick=False,
+        timeout=300,
+    ),
 ]
 
 

@@ -238,7 +238,10 @@ impl Obstacle {
             }
             Obstacle::Shape3(s) => {
                 let b = s.compute_local_aabb();
-                ([b.mins.x, b.mins.y, b.mins.z], [b.maxs.x, b.maxs.y, b.maxs.z])
+                (
+                    [b.mins.x, b.mins.y, b.mins.z],
+                    [b.maxs.x, b.maxs.y, b.maxs.z],
+                )
             }
         }
     }
@@ -370,10 +373,15 @@ mod tests {
         let far = [-3.7e221f64, -4.9e15, 1e300, 1e300, 0.5, 0.25];
         let f = obstacle_features(&far, 2, &[&ramp], 4e16).unwrap();
         assert_eq!(&f[..4], &[0.0; 4]);
-        assert!(f[4].abs() < 1e-15 && (f[5] / f[4] + 4.0).abs() < 1e-9, "{f:?}");
+        assert!(
+            f[4].abs() < 1e-15 && (f[5] / f[4] + 4.0).abs() < 1e-9,
+            "{f:?}"
+        );
         let big = |r: Result<Vec<f64>>| r.unwrap_err().to_string();
         assert!(big(obstacle_features(&far, 2, &[&ramp], 1e200)).contains("radius = 1e200"));
-        let err = Obstacle::polyline(&[0.0, 0.0, 1e200, 0.0], false).err().unwrap();
+        let err = Obstacle::polyline(&[0.0, 0.0, 1e200, 0.0], false)
+            .err()
+            .unwrap();
         assert!(err.to_string().contains("1e200"), "{err}");
         assert!(Obstacle::cuboid(&[1e101, 0.0], &[1.0, 1.0]).is_err());
     }
