@@ -98,3 +98,49 @@ def test_sand_converts_to_deepmind_and_validates(tmp_path):
         assert_same(type(a)(a.positions, a.particle_type, a.step_context, None, key=a.key), b)
     # The manifest folder itself is sound.
     assert validate_dataset(SAND) == []
+
+
+def test_frame_stride_keeps_every_kth_frame_all_train_phases_and_restates_statistics(tmp_path):
+    k = 3
+    convert(SAND, tmp_path / "s", "h5", splits=["train", "test"], frame_stride=k)
+    frames = (350 - k) // k + 1  # the length of the last phase, 116: frames 2, 5, ..., 347
+    meta = open_dataset(tmp_path / "s", "test").metadata
+    assert (meta.dt, meta.sequence_length) == (0.0025 * k, frames - 1)
+
+    test = open_dataset(tmp_path / "s", "test")
+    originals = open_dataset(SAND, "test").files
+    assert len(test) == len(originals)
+    for trajectory, f in zip(test, originals, strict=True):  # phase 0: starts at frame 0
+        np.testing.assert_array_equal(
+            trajectory.positions, load_trusted(f.name)[0][0 : 3 * frames : 3]
+        )
+
+    train = open_dataset(tmp_path / "s", "train")
+    strided = [
+        load_trusted(f.name)[0][p : p + k * frames : k]
+        for f in open_dataset(SAND, "train").files
+        for p in range(k)
+    ]
+    assert len(train) == len(strided) == 12 * k
+    for trajectory, expected in zip(train, strided, strict=True):
+        assert trajectory.positions.shape == (frames, 656, 2)
+        np.testing.assert_array_equal(trajectory.positions, expected)
+        assert trajectory.step_context.shape == (frames, 1)
+        assert np.all(trajectory.step_context == trajectory.step_context[0, 0])
+
+    vel, acc = zip(*(per_frame_stats(x) for x in strided), strict=True)
+    vel, acc = np.concatenate(vel), np.concatenate(acc)
+    np.testing.assert_allclose(meta.vel_std, vel.std(0), rtol=1e-8)
+    np.testing.assert_allclose(meta.acc_std, acc.std(0), rtol=1e-8)
+    # A coarser step: accelerations grow (k^2 = 9x for smooth motion, less across impacts,
+    # which a longer step averages: 6.7-7x here).
+    assert np.all(
+        np.asarray(meta.acc_std) > 5 * np.asarray(open_dataset(SAND, "test").metadata.acc_std)
+    )
+
+
+@pytest.mark.parametrize("stride", [0, -2, 2.5, True, 349])
+def test_a_bad_frame_stride_is_refused_and_writes_nothing(tmp_path, stride):
+    with pytest.raises(ValueError, match="frame_stride"):
+        convert(SAND, tmp_path / "s", "h5", splits=["test"], frame_stride=stride)
+    assert not (tmp_path / "s").exists()

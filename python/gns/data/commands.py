@@ -49,6 +49,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     conv.add_argument("dst", type=Path, help="new folder (must not exist, or be empty)")
     conv.add_argument("--to", required=True, choices=TARGETS)
     conv.add_argument("--splits", nargs="*", default=None, help="default: every split present")
+    conv.add_argument(
+        "--frame-stride",
+        type=int,
+        default=1,
+        help="keep every k-th frame (dt times k); train keeps every phase as its own trajectory",
+    )
     conv.set_defaults(handler=run_convert)
 
 
@@ -101,7 +107,9 @@ def run_validate(args: argparse.Namespace) -> int:
 
 
 def run_convert(args: argparse.Namespace) -> int:
-    counts = convert(args.src, args.dst, args.to, splits=args.splits)
+    counts = convert(
+        args.src, args.dst, args.to, splits=args.splits, frame_stride=args.frame_stride
+    )
     for split, count in counts.items():
         print(f"{split}: {count} trajectories")
     print(f"wrote {args.dst} ({args.to})")

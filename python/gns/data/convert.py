@@ -8,6 +8,13 @@ Global features move between the two ways layouts store them: DeepMind has only 
 step_context, geoelements only a per-trajectory material_property. A constant one-feature
 step_context becomes a scalar material_property and back; anything else that a target cannot
 hold is an error, never silently dropped.
+
+`frame_stride` k keeps every k-th frame (dt becomes k dt): a coarser time step makes each
+predicted acceleration k^2 times larger against the same input noise and a rollout k times
+shorter. The train split keeps every phase (frames p, p + k, ... for p < k, each its own
+trajectory, so no frame of the training data is lost); the other splits keep phase 0, so a
+rollout still starts at the first frame. Every output trajectory has the same length, that of
+phase k - 1, and the statistics are computed anew from the strided train split.
 """
 
 from __future__ import annotations
@@ -73,6 +80,20 @@ def adapt(trajectory: Trajectory, to: str) -> Trajectory:
     )
 
 
+def subsample(trajectory: Trajectory, stride: int, phase: int, frames: int) -> Trajectory:
+    """Frames phase, phase + stride, ... of `trajectory`, `frames` of them."""
+    picked = slice(phase, phase + (frames - 1) * stride + 1, stride)
+    context = trajectory.step_context
+    return Trajectory(
+        trajectory.positions[picked],
+        trajectory.particle_type,
+        None if context is None else context[picked],
+        trajectory.material_property,
+        key=trajectory.key * stride + phase,
+        source=trajectory.source,
+    )
+
+
 def _writer(to: str) -> Callable[[Path, Iterable[Trajectory]], int]:
     if to == "deepmind":
         return write_tfrecord
@@ -89,14 +110,18 @@ def convert(
     to: str,
     *,
     splits: Iterable[str] | None = None,
+    frame_stride: int = 1,
 ) -> dict[str, int]:
     """Write the dataset at `src` to the new folder `dst` in layout `to`.
 
     Returns the number of trajectories written per split. Missing statistics are computed from
     the train split while it is written. `dst` must not exist or be an empty folder.
+    `frame_stride` > 1 subsamples time as the module docstring says.
     """
     if to not in TARGETS:
         raise ValueError(f"unknown target layout {to!r}; expected one of {TARGETS}")
+    if isinstance(frame_stride, bool) or not isinstance(frame_stride, int) or frame_stride < 1:
+        raise ValueError(f"frame_stride must be a positive integer, got {frame_stride!r}")
     chosen = list(splits) if splits is not None else available_splits(src)
     if not chosen:
         raise DatasetError(src, "no splits to convert")
@@ -108,7 +133,7 @@ def convert(
         with atomic_folder(dst) as tmp:
             for split in chosen:
                 dataset = open_dataset(src, split)
-                metadata = metadata or dataset.metadata
+                metadata = metadata or _strided_metadata(dataset.metadata, frame_stride)
                 if split == "train":
                     accumulator = StatisticsAccumulator(metadata.kinematic_particle_types)
 
@@ -118,7 +143,7 @@ def convert(
                     split: str = split,
                 ) -> Iterator[Trajectory]:
                     nonlocal has_context, has_material
-                    for trajectory in dataset:
+                    for trajectory in _strided(dataset, split, frame_stride):
                         adapted = adapt(trajectory, to)
                         has_context |= adapted.step_context is not None
                         has_material |= adapted.material_property is not None
@@ -133,6 +158,36 @@ def convert(
     except FileExistsError as err:
         raise DatasetError(dst, str(err)) from err
     return counts
+
+
+def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
+    if stride == 1:
+        return metadata
+    frames = (metadata.sequence_length + 1 - stride) // stride + 1
+    if frames < 2:
+        raise ValueError(
+            f"frame_stride {stride} leaves fewer than 2 frames of the "
+            f"{metadata.sequence_length + 1} per trajectory"
+        )
+    # Per-frame statistics change with the time step: _target_metadata computes them anew.
+    return metadata.replace(
+        sequence_length=frames - 1,
+        dt=metadata.dt * stride,
+        vel_mean=None,
+        vel_std=None,
+        acc_mean=None,
+        acc_std=None,
+    )
+
+
+def _strided(dataset: Iterable[Trajectory], split: str, stride: int) -> Iterator[Trajectory]:
+    for trajectory in dataset:
+        if stride == 1:
+            yield trajectory
+            continue
+        frames = (trajectory.num_frames - stride) // stride + 1
+        for phase in range(stride if split == "train" else 1):
+            yield subsample(trajectory, stride, phase, frames)
 
 
 def _target_metadata(
