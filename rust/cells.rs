@@ -2,7 +2,7 @@
 //! from the graph's actual bounding box, with positions copied in cell order (structure of
 //! arrays) so that each query scans a few contiguous runs instead of 9 or 27 scattered cells.
 
-use crate::graph::{accept_at, clump_edges, tight, Ctx, Found, Prepared, SharedMut};
+use crate::graph::{accept_at, clump_edges, tight, Ctx, Found, Prepared, RowSink, SharedMut};
 use rayon::prelude::*;
 
 /// The grid declines (and the caller uses the k-d tree) when it would need more cells than
@@ -11,9 +11,11 @@ const MAX_CELLS_PER_PARTICLE: usize = 4;
 const MIN_CELL_BUDGET: usize = 4096;
 /// From this many particles the counting sort runs on every thread.
 const PARALLEL_SORT_FROM: usize = 8_192;
-/// Values past the end of the sorted arrays, so that [`Grid::gather`] may copy whole chunks
-/// of 4 from the end of the last run.
-const CHUNK_SLACK: usize = 4;
+/// Values past the end of the sorted arrays, so that [`Grid::gather`] may copy 16 values
+/// from the start of the last run whatever its length.
+const CHUNK_SLACK: usize = 16;
+/// Slots past the padded width of each axis of a gathered block (see [`Grid::gather`]).
+const BLOCK_SLACK: usize = 16;
 
 pub(crate) struct Grid<const D: usize> {
     len: usize,
@@ -276,6 +278,9 @@ impl<const D: usize> Grid<D> {
     /// particles of cell c: up to 3 (2D) or 9 (3D) rows, split in two where a periodic row wraps.
     /// Written into `runs`, not returned: copying the array out costs more than filling it.
     fn runs_of_cell(&self, mut id: usize, runs: &mut [(usize, usize); 18]) -> usize {
+        if !self.periodic.iter().any(|&p| p) {
+            return self.runs_of_open_cell(id, runs);
+        }
         let mut c = [0usize; D];
         for d in (0..D).rev() {
             c[d] = id % self.n[d];
@@ -301,6 +306,40 @@ impl<const D: usize> Grid<D> {
             for &c0 in a0.as_slice() {
                 for &c1 in a1.as_slice() {
                     visit_row(c0 * self.n[1] + c1);
+                }
+            }
+        }
+        k
+    }
+
+    /// [`Grid::runs_of_cell`] without periodic axes: each row of the stencil is one run,
+    /// clipped at the walls, found from the cell id by offsets (no per-axis cell lists).
+    #[inline(always)]
+    fn runs_of_open_cell(&self, id: usize, runs: &mut [(usize, usize); 18]) -> usize {
+        let n_last = self.n[D - 1];
+        let (row, c_last) = (id / n_last, id % n_last);
+        // The run of a row: the cells c - 1 ..= c + 1 of the last axis, within the grid.
+        let (left, right) = ((c_last > 0) as usize, (c_last + 1 < n_last) as usize);
+        let mut k = 0;
+        let mut visit = |same_column: usize| {
+            let a = self.cell_start[same_column - left] as usize;
+            let b = self.cell_start[same_column + right + 1] as usize;
+            runs[k] = (a, b);
+            k += (a < b) as usize;
+        };
+        let rows = |c: usize, n: usize| (c.saturating_sub(1), (c + 1).min(n - 1));
+        if D == 2 {
+            let (r0, r1) = rows(row, self.n[0]);
+            for r in r0..=r1 {
+                visit(r * n_last + c_last);
+            }
+        } else {
+            let (c0, c1) = (row / self.n[1], row % self.n[1]);
+            let (a0, b0) = rows(c0, self.n[0]);
+            let (a1, b1) = rows(c1, self.n[1]);
+            for r0 in a0..=b0 {
+                for r1 in a1..=b1 {
+                    visit((r0 * self.n[1] + r1) * n_last + c_last);
                 }
             }
         }
@@ -340,15 +379,17 @@ impl<const D: usize> Grid<D> {
 
     /// Copies the candidates of `runs` into one contiguous axis-major block, padded to a
     /// multiple of 4 with points at infinity (never within any radius), so that one SIMD loop
-    /// without a scalar tail serves every query of the cell. Returns the padded width; axis d
-    /// of the block starts at d * (width + 4).
+    /// without a scalar tail serves every query of the cell. Returns the padded width w; axis
+    /// d of the block starts at d * (w + BLOCK_SLACK).
     fn gather(&self, runs: &[(usize, usize)], coords: &mut Vec<f64>, ids: &mut Vec<u32>) -> usize {
         let n: usize = runs.iter().map(|&(a, b)| b - a).sum();
         let width = n.div_ceil(4) * 4;
-        // Runs are copied in whole chunks of 4, which may overshoot a run's end by 3: the
-        // next run or the padding overwrites that, and the 4 extra slots per axis keep the
-        // overshoot of one axis out of the next.
-        let stride = width + 4;
+        // Runs are copied 16 values at a time at least, then in chunks of 4, which may
+        // overshoot a run's end by 15: the next run or the padding overwrites that, and the
+        // BLOCK_SLACK extra slots per axis keep the overshoot of one axis out of the next.
+        // A fixed first copy covers most runs (~13 values in 2D) without a branch on their
+        // length, which the predictor kept missing.
+        let stride = width + BLOCK_SLACK;
         if coords.len() < D * stride {
             coords.resize(D * stride, 0.0);
         }
@@ -358,9 +399,9 @@ impl<const D: usize> Grid<D> {
         let mut k = 0;
         for &(a, b) in runs {
             let m = b - a;
-            // SAFETY: reads stay below a + m + 3 <= len + 3 of an axis, and `sorted` and
-            // `order` carry CHUNK_SLACK values past the last axis; writes stay below
-            // k + m + 3 < stride of each axis, as k + m <= n <= width.
+            // SAFETY: reads stay below a + max(m + 3, 16) <= len + 16 of an axis, and
+            // `sorted` and `order` carry CHUNK_SLACK values past the last axis; writes stay
+            // below k + max(m + 3, 16) <= n + 16 <= stride of each axis, as k + m <= n.
             unsafe {
                 for d in 0..D {
                     let src = self.sorted.as_ptr().add(d * self.len + a);
@@ -370,10 +411,11 @@ impl<const D: usize> Grid<D> {
             }
             k += m;
         }
+        // Padding: n..width, written as 4 values (stride has room for them).
         for d in 0..D {
-            coords[d * stride + n..d * stride + width].fill(f64::INFINITY);
+            coords[d * stride + n..d * stride + n + 4].fill(f64::INFINITY);
         }
-        ids[n..width].fill(u32::MAX);
+        ids[n..n + 4].fill(u32::MAX);
         width
     }
 
@@ -384,7 +426,7 @@ impl<const D: usize> Grid<D> {
         hi: usize,
         ctx: &Ctx,
         found: &mut Found,
-        emit: &mut impl FnMut(usize, &mut [u32], &[[i32; 3]]) -> bool,
+        sink: &mut RowSink,
     ) {
         self.for_each_cell(lo, hi, |p0, p1, runs| {
             if ctx.metric.any_periodic {
@@ -397,45 +439,243 @@ impl<const D: usize> Grid<D> {
                         let j = self.order[k] as usize;
                         accept_at(ctx, i, j, &q, &self.query_point(k), found);
                     }
-                    if !emit(i, &mut found.senders, &found.shifts) {
+                    if !sink.push(i, &mut found.senders, &found.shifts) {
                         return false;
                     }
                 }
                 return true;
             }
             let w = self.gather(runs, &mut found.coords, &mut found.ids);
-            // Slack of 4: the SIMD compaction stores whole vectors of 4 indices.
-            if found.buf.len() < w + 4 {
-                found.buf.resize(w + 4, 0);
+            #[cfg(target_arch = "x86_64")]
+            if ctx.avx2 {
+                // SAFETY: avx2 is only set when the CPU has AVX2.
+                return unsafe { self.cell_avx2(p0, p1, w, ctx, found, sink) };
             }
+            let r2 = ctx.metric.r2;
             for p in p0..p1 {
                 let q = self.query_point(p);
                 let i = self.order[p] as usize;
-                let r2 = ctx.metric.r2;
-                let mut n = collect_block::<D>(
-                    ctx.avx2,
-                    &found.coords,
-                    &found.ids,
-                    w + 4,
-                    w,
-                    &q,
-                    r2,
-                    &mut found.buf,
-                );
+                // Compacted straight into the task's rows (the SIMD compaction stores whole
+                // vectors of 4 indices: w + 4 slots), sorted there by the sink.
+                let row = sink.room(w + 4);
+                let stride = w + BLOCK_SLACK;
+                let mut n =
+                    collect_block::<D>(ctx.avx2, &found.coords, &found.ids, stride, w, &q, r2, row);
                 if !ctx.self_edges {
                     // Self-edges are decided by index: drop i itself, keep coincident others.
-                    if let Some(k) = found.buf[..n].iter().position(|&j| j as usize == i) {
-                        found.buf.swap(k, n - 1);
+                    if let Some(k) = row[..n].iter().position(|&j| j as usize == i) {
+                        row.swap(k, n - 1);
                         n -= 1;
                     }
                 }
-                if !emit(i, &mut found.buf[..n], &[]) {
+                if !sink.keep(i, n) {
                     return false;
                 }
             }
             true
         });
     }
+}
+
+impl<const D: usize> Grid<D> {
+    /// The queries p0..p1 of one cell against its gathered block of width w, compiled for
+    /// AVX2 as a whole so that the compaction and the sort inline into the query loop.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn cell_avx2(
+        &self,
+        p0: usize,
+        p1: usize,
+        w: usize,
+        ctx: &Ctx,
+        found: &Found,
+        sink: &mut RowSink,
+    ) -> bool {
+        let r2 = ctx.metric.r2;
+        let stride = w + BLOCK_SLACK;
+        assert!(found.coords.len() >= D * stride && found.ids.len() >= w);
+        let (coords, ids) = (found.coords.as_ptr(), found.ids.as_ptr());
+        let drop_self = |row: &mut [u32], n: usize, i: usize| -> usize {
+            // Self-edges are decided by index: drop i itself, keep coincident others.
+            match row[..n].iter().position(|&j| j as usize == i) {
+                Some(k) if !ctx.self_edges => {
+                    row.swap(k, n - 1);
+                    n - 1
+                }
+                _ => n,
+            }
+        };
+        let mut p = p0;
+        // Two queries per pass over the block: each load of the block serves both, and the
+        // loop's exit (a branch the predictor misses about once per pass) is paid once.
+        while p + 2 <= p1 {
+            let (qa, qb) = (self.query_point(p), self.query_point(p + 1));
+            let (ia, ib) = (self.order[p] as usize, self.order[p + 1] as usize);
+            // Row a at 0, row b at `at_b` until row a is kept; then b moves down next to it.
+            // Row a's compaction writes below w + 4, its sort below 32 (or na + 32).
+            let at_b = (w + 4).max(32);
+            let row = sink.room(at_b + w + 4);
+            let out = row.as_mut_ptr();
+            let (mut na, mut nb) =
+                compact2_avx2::<D>(coords, ids, stride, w, [&qa, &qb], r2, out, out.add(at_b));
+            if !ctx.self_edges {
+                na = drop_self(row, na, ia);
+                nb = drop_self(&mut row[at_b..], nb, ib);
+            }
+            if !sink.keep(ia, na) {
+                return false;
+            }
+            // Row a's sort writes below 32 if na <= 32, else in place below na <= w: row b
+            // is intact.
+            let row = sink.room(0);
+            let src = row.as_ptr().add(at_b - na);
+            if nb <= 24 {
+                copy_24_down(src, row.as_mut_ptr());
+            } else {
+                std::ptr::copy(src, row.as_mut_ptr(), nb);
+            }
+            if !sink.keep(ib, nb) {
+                return false;
+            }
+            p += 2;
+        }
+        if p < p1 {
+            let q = self.query_point(p);
+            let i = self.order[p] as usize;
+            let row = sink.room(w + 4);
+            let mut n = compact_avx2::<D>(coords, ids, stride, w, &q, r2, row.as_mut_ptr());
+            if !ctx.self_edges {
+                n = drop_self(row, n, i);
+            }
+            if !sink.keep(i, n) {
+                return false;
+            }
+        }
+        true
+    }
+}
+
+/// Copies 24 u32 from src to dst <= src - 4 (the ranges may overlap): all loads first.
+///
+/// # Safety
+/// Both valid for 24 values; called in AVX2 code only.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn copy_24_down(src: *const u32, dst: *mut u32) {
+    use std::arch::x86_64::*;
+    let a = _mm256_loadu_si256(src as *const __m256i);
+    let b = _mm256_loadu_si256(src.add(8) as *const __m256i);
+    let c = _mm256_loadu_si256(src.add(16) as *const __m256i);
+    _mm256_storeu_si256(dst as *mut __m256i, a);
+    _mm256_storeu_si256(dst.add(8) as *mut __m256i, b);
+    _mm256_storeu_si256(dst.add(16) as *mut __m256i, c);
+}
+
+/// [`compact_avx2`] for two queries at once, into out_a and out_b (w + 4 slots each).
+///
+/// # Safety
+/// As for [`compact_avx2`].
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn compact2_avx2<const D: usize>(
+    coords: *const f64,
+    ids: *const u32,
+    stride: usize,
+    w: usize,
+    q: [&[f64; D]; 2],
+    r2: f64,
+    out_a: *mut u32,
+    out_b: *mut u32,
+) -> (usize, usize) {
+    use std::arch::x86_64::*;
+    let (xs, ys, zs) = (coords, coords.add(stride), coords.add((D - 1) * stride));
+    let query = |q: &[f64; D]| {
+        (
+            _mm256_set1_pd(q[0]),
+            _mm256_set1_pd(q[1]),
+            _mm256_set1_pd(q[D - 1]),
+        )
+    };
+    let (qa, qb) = (query(q[0]), query(q[1]));
+    let r2v = _mm256_set1_pd(r2);
+    let d2 = |x: __m256d, y: __m256d, z: __m256d, q: (__m256d, __m256d, __m256d)| {
+        let dx = _mm256_sub_pd(x, q.0);
+        let dy = _mm256_sub_pd(y, q.1);
+        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
+        if D == 3 {
+            let dz = _mm256_sub_pd(z, q.2);
+            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
+        }
+        _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as usize
+    };
+    let (mut na, mut nb) = (0, 0);
+    let mut k = 0;
+    while k < w {
+        let x = _mm256_loadu_pd(xs.add(k));
+        let y = _mm256_loadu_pd(ys.add(k));
+        let z = if D == 3 {
+            _mm256_loadu_pd(zs.add(k))
+        } else {
+            x
+        };
+        let idv = _mm_loadu_si128(ids.add(k) as *const __m128i);
+        let (ma, mb) = (d2(x, y, z, qa), d2(x, y, z, qb));
+        let sa = _mm_loadu_si128(PACK[ma].as_ptr() as *const __m128i);
+        let sb = _mm_loadu_si128(PACK[mb].as_ptr() as *const __m128i);
+        _mm_storeu_si128(out_a.add(na) as *mut __m128i, _mm_shuffle_epi8(idv, sa));
+        _mm_storeu_si128(out_b.add(nb) as *mut __m128i, _mm_shuffle_epi8(idv, sb));
+        // Counts from a table: `count_ones` (no POPCNT in this context) was turned into a
+        // vector popcount whose results crossed back to the integer registers every pass.
+        na += LANES[ma] as usize;
+        nb += LANES[mb] as usize;
+        k += 4;
+    }
+    (na, nb)
+}
+
+/// The compaction of [`collect_run_avx2`] over a whole gathered block (w a multiple of 4),
+/// without a tail; inlined into AVX2 code only.
+///
+/// # Safety
+/// coords holds D axes of w values at stride, ids w values, out w + 4 slots.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn compact_avx2<const D: usize>(
+    coords: *const f64,
+    ids: *const u32,
+    stride: usize,
+    w: usize,
+    q: &[f64; D],
+    r2: f64,
+    out: *mut u32,
+) -> usize {
+    use std::arch::x86_64::*;
+    let (xs, ys, zs) = (coords, coords.add(stride), coords.add((D - 1) * stride));
+    let (qx, qy, qz) = (
+        _mm256_set1_pd(q[0]),
+        _mm256_set1_pd(q[1]),
+        _mm256_set1_pd(q[D - 1]),
+    );
+    let r2v = _mm256_set1_pd(r2);
+    let mut n = 0;
+    let mut k = 0;
+    while k < w {
+        let dx = _mm256_sub_pd(_mm256_loadu_pd(xs.add(k)), qx);
+        let dy = _mm256_sub_pd(_mm256_loadu_pd(ys.add(k)), qy);
+        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
+        if D == 3 {
+            let dz = _mm256_sub_pd(_mm256_loadu_pd(zs.add(k)), qz);
+            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
+        }
+        let mask = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as usize;
+        let idv = _mm_loadu_si128(ids.add(k) as *const __m128i);
+        let shuffle = _mm_loadu_si128(PACK[mask].as_ptr() as *const __m128i);
+        _mm_storeu_si128(out.add(n) as *mut __m128i, _mm_shuffle_epi8(idv, shuffle));
+        n += LANES[mask] as usize;
+        k += 4;
+    }
+    n
 }
 
 /// Writes the ids of the neighbours of q among the first w points of a gathered block (axis d
@@ -461,14 +701,15 @@ fn collect_block<const D: usize>(
     collect_run::<D>(coords, ids, stride, 0, w, q, r2, out)
 }
 
-/// Copies m values in whole chunks of 4 (up to 3 past m): a few vector moves, where a
-/// memcpy call for a dozen values costs more than the copy.
+/// Copies m values: 16 whatever m, then whole chunks of 4 (up to 15 past m): a few vector
+/// moves, where a memcpy call for a dozen values costs more than the copy.
 ///
 /// # Safety
-/// src and dst must be valid for m rounded up to a multiple of 4 values.
+/// src and dst must be valid for max(16, m rounded up to a multiple of 4) values.
 #[inline(always)]
 unsafe fn copy_chunks<T: Copy>(src: *const T, dst: *mut T, m: usize) {
-    let mut t = 0;
+    std::ptr::copy_nonoverlapping(src, dst, 16);
+    let mut t = 16;
     while t < m {
         std::ptr::copy_nonoverlapping(src.add(t), dst.add(t), 4);
         t += 4;
@@ -580,6 +821,10 @@ unsafe fn collect_run_avx2<const D: usize>(
     let tail = &mut out[n..];
     n + collect_run::<D>(sorted, order, len, a + k, b, q, r2, tail)
 }
+
+/// LANES[mask]: how many of 4 lanes `mask` selects.
+#[cfg(target_arch = "x86_64")]
+static LANES: [u8; 16] = [0, 1, 1, 2, 1, 2, 2, 3, 1, 2, 2, 3, 2, 3, 3, 4];
 
 /// PACK[mask]: byte shuffle that moves the 32-bit lanes selected by `mask` to the front.
 #[cfg(target_arch = "x86_64")]
