@@ -150,6 +150,23 @@ def test_node_and_edge_features_by_hand():
     np.testing.assert_allclose(edges[:, 2], distance[receivers, senders] / 0.1, atol=1e-12)
 
 
+def test_wall_clip_from_the_config_overrides_the_metadata():
+    meta = fixed_statistics()
+    assert Scene.from_metadata(meta, (5,)).wall_clip == 1.0  # the paper's clip at R
+    wide = Scene.from_metadata(meta, (5,), SceneConfig(wall_clip=3.0))
+    assert wide.wall_clip == 3.0
+    # Points 0.05..0.45 from the lower walls: clipped at 3 R = 0.3, no longer at R = 0.1.
+    last = np.stack([np.linspace(0.15, 0.55, 9)] * 2, axis=1)
+    positions = torch.tensor(np.repeat(last[:, None], 6, axis=1))
+    nodes = LearnedSimulator(wide, config()).double().features(positions, torch.full((9,), 5))
+    lo, hi = np.array(BOX).T
+    want = np.clip(np.concatenate([last - lo, hi - last], axis=1) / 0.1, -3, 3)
+    np.testing.assert_allclose(nodes["node_features"][:, 10:14].detach().numpy(), want)
+    assert want.max() == 3.0 and 1 < want[3, 0] < 3  # both the clip and the range it opens
+    with pytest.raises(ValueError, match=r"wall_clip must be positive, got -1"):
+        SceneConfig(wall_clip=-1.0)
+
+
 def test_self_edges_follow_the_config():
     positions, types = window(seed=2)
     with_self = LearnedSimulator(scene(), config()).features(positions, types)

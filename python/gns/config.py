@@ -280,6 +280,9 @@ class SceneConfig:
     kinematic_particle_types: None takes the dataset's (default {3}).
     gravity: physical gravity (m/s^2, one value per axis) for model.add_gravity; converted to
         per-frame units with the dataset's dt.
+    wall_clip: wall distances are clipped to [-wall_clip, wall_clip] radii; None takes the
+        metadata's boundary_augment (1, the paper's clip at the radius, when absent). A larger
+        clip lets the model see a wall coming when particles move more than a radius a step.
     """
 
     radius: float | None = None
@@ -288,10 +291,13 @@ class SceneConfig:
     material_property: bool | None = None
     kinematic_particle_types: tuple[int, ...] | None = None
     gravity: tuple[float, ...] | None = None
+    wall_clip: float | None = None
 
     def __post_init__(self) -> None:
         if self.radius is not None:
             _positive(self, "radius")
+        if self.wall_clip is not None:
+            _positive(self, "wall_clip")
 
 
 @dataclass(frozen=True)

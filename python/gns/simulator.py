@@ -146,7 +146,7 @@ class Scene:
             material_property_size=metadata.material_feature_len if use_material else 0,
             kinematic_particle_types=tuple(kinematic),
             gravity=gravity,
-            wall_clip=metadata.boundary_augment,
+            wall_clip=config.wall_clip or metadata.boundary_augment,
         )
 
     @classmethod
