@@ -787,37 +787,19 @@ unsafe fn collect_run_avx2<const D: usize>(
     r2: f64,
     out: &mut [u32],
 ) -> usize {
-    use std::arch::x86_64::*;
     let m = b - a;
     assert!(out.len() >= m + 4 && b <= len && order.len() >= b && sorted.len() >= D * len);
-    let ids = order.as_ptr().add(a);
-    let xs = sorted.as_ptr().add(a);
-    let ys = sorted.as_ptr().add(len + a);
-    let zs = sorted.as_ptr().add((D - 1) * len + a);
-    let (qx, qy, qz) = (
-        _mm256_set1_pd(q[0]),
-        _mm256_set1_pd(q[1]),
-        _mm256_set1_pd(q[D - 1]),
+    // Whole chunks of 4 by the shared kernel (axes of `sorted` are len apart), the rest here.
+    let k = m & !3;
+    let n = compact_avx2::<D>(
+        sorted.as_ptr().add(a),
+        order.as_ptr().add(a),
+        len,
+        k,
+        q,
+        r2,
+        out.as_mut_ptr(),
     );
-    let r2v = _mm256_set1_pd(r2);
-    let dst = out.as_mut_ptr();
-    let mut n = 0;
-    let mut k = 0;
-    while k + 4 <= m {
-        let dx = _mm256_sub_pd(_mm256_loadu_pd(xs.add(k)), qx);
-        let dy = _mm256_sub_pd(_mm256_loadu_pd(ys.add(k)), qy);
-        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
-        if D == 3 {
-            let dz = _mm256_sub_pd(_mm256_loadu_pd(zs.add(k)), qz);
-            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
-        }
-        let mask = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as usize;
-        let idv = _mm_loadu_si128(ids.add(k) as *const __m128i);
-        let shuffle = _mm_loadu_si128(PACK[mask].as_ptr() as *const __m128i);
-        _mm_storeu_si128(dst.add(n) as *mut __m128i, _mm_shuffle_epi8(idv, shuffle));
-        n += mask.count_ones() as usize;
-        k += 4;
-    }
     let tail = &mut out[n..];
     n + collect_run::<D>(sorted, order, len, a + k, b, q, r2, tail)
 }
