@@ -138,6 +138,13 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
         )
     table = capsys.readouterr().out
     assert "const. velocity" in table and "one_step_mse" in table
+    # --run may name a checkpoint file: the report goes beside it.
+    checkpoint = sorted((run / "checkpoints").glob("step_*.pt"))[0]
+    args = ["eval", "--run", str(checkpoint), "--data", str(data), "--rollouts", str(out64)]
+    assert main([*args, "--checkpoint", "best"]) == 2  # best.pt is for run folders
+    assert main([*args, "--every", "4"]) == 0
+    beside = json.loads((checkpoint.parent / "eval_test.json").read_text())
+    assert beside["rollouts"] == [str(out64 / f"rollout_test_{i}.npz") for i in (0, 1)]
     # Bad input is an error message and exit status 2, not a traceback.
     assert main(["eval", "--run", str(tmp_path / "nowhere"), "--data", str(data)]) == 2
     assert "no rollouts" in capsys.readouterr().err

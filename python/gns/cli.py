@@ -235,6 +235,11 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_folder(run: Path) -> Path:
+    """Where outputs of `--run RUN` go: RUN itself, or the folder of a checkpoint file."""
+    return run if run.is_dir() else run.parent
+
+
 def run_rollout(args: argparse.Namespace) -> int:
     from gns.data import open_dataset
     from gns.rollout import RolloutDiverged, rollout, save_deepmind_pickle, save_rollout
@@ -248,7 +253,7 @@ def run_rollout(args: argparse.Namespace) -> int:
     if args.float64:
         simulator.double()
     dataset = open_dataset(args.data, args.split)
-    out = args.out or (args.run if args.run.is_dir() else args.run.parent) / "rollouts" / args.split
+    out = args.out or run_folder(args.run) / "rollouts" / args.split
     out.mkdir(parents=True, exist_ok=True)
     indices = args.trajectories if args.trajectories else range(len(dataset))
     diverged = 0
@@ -285,7 +290,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.train import choose_checkpoint, load_simulator, resolve_device
 
     set_threads(args.threads)
-    folder = args.rollouts or args.run / "rollouts" / args.split
+    folder = args.rollouts or run_folder(args.run) / "rollouts" / args.split
     files = sorted(
         folder.glob(f"rollout_{args.split}_*.npz"), key=lambda p: int(p.stem.split("_")[-1])
     )
@@ -311,7 +316,8 @@ def run_eval(args: argparse.Namespace) -> int:
         for name, value in one_step.items():
             report["mean"][name]["one_step_mse"] = value
     report["split"], report["rollouts"] = args.split, [str(f) for f in files]
-    write_json_atomic(args.run / f"eval_{args.split}.json", report)
+    written = run_folder(args.run) / f"eval_{args.split}.json"
+    write_json_atomic(written, report)
     mean = report["mean"]
     keys = [k for k in mean["model"] if k != "finite"] + ["finite"]
     print(f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box: worst)")
@@ -322,7 +328,7 @@ def run_eval(args: argparse.Namespace) -> int:
         print(f"{key:<16} {a:>14.4g} {b:>16.4g} {ratio:>8.3g}")
     if "ground_truth" in mean:
         print(f"(the ground truth itself: outside_box {mean['ground_truth']['outside_box']:.4g})")
-    print(f"wrote {args.run / f'eval_{args.split}.json'}")
+    print(f"wrote {written}")
     return 0
 
 

@@ -303,6 +303,8 @@ def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path
     the run has one, otherwise latest)."""
     path = Path(path)
     if not path.is_dir():
+        if which != "auto":
+            raise ValueError(f"checkpoint {which!r} picks from a run folder, but {path} is a file")
         return path
     if which not in ("auto", "best", "latest"):
         raise ValueError(f"checkpoint must be 'auto', 'best' or 'latest', got {which!r}")
