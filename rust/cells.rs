@@ -462,11 +462,7 @@ impl<const D: usize> Grid<D> {
                 let mut n =
                     collect_block::<D>(ctx.avx2, &found.coords, &found.ids, stride, w, &q, r2, row);
                 if !ctx.self_edges {
-                    // Self-edges are decided by index: drop i itself, keep coincident others.
-                    if let Some(k) = row[..n].iter().position(|&j| j as usize == i) {
-                        row.swap(k, n - 1);
-                        n -= 1;
-                    }
+                    n = without_self(row, n, i);
                 }
                 if !sink.keep(i, n) {
                     return false;
@@ -495,16 +491,6 @@ impl<const D: usize> Grid<D> {
         let stride = w + BLOCK_SLACK;
         assert!(found.coords.len() >= D * stride && found.ids.len() >= w);
         let (coords, ids) = (found.coords.as_ptr(), found.ids.as_ptr());
-        let drop_self = |row: &mut [u32], n: usize, i: usize| -> usize {
-            // Self-edges are decided by index: drop i itself, keep coincident others.
-            match row[..n].iter().position(|&j| j as usize == i) {
-                Some(k) if !ctx.self_edges => {
-                    row.swap(k, n - 1);
-                    n - 1
-                }
-                _ => n,
-            }
-        };
         let mut p = p0;
         // Two queries per pass over the block: each load of the block serves both, and the
         // loop's exit (a branch the predictor misses about once per pass) is paid once.
@@ -519,8 +505,8 @@ impl<const D: usize> Grid<D> {
             let (mut na, mut nb) =
                 compact2_avx2::<D>(coords, ids, stride, w, [&qa, &qb], r2, out, out.add(at_b));
             if !ctx.self_edges {
-                na = drop_self(row, na, ia);
-                nb = drop_self(&mut row[at_b..], nb, ib);
+                na = without_self(row, na, ia);
+                nb = without_self(&mut row[at_b..], nb, ib);
             }
             if !sink.keep(ia, na) {
                 return false;
@@ -545,13 +531,26 @@ impl<const D: usize> Grid<D> {
             let row = sink.room(w + 4);
             let mut n = compact_avx2::<D>(coords, ids, stride, w, &q, r2, row.as_mut_ptr());
             if !ctx.self_edges {
-                n = drop_self(row, n, i);
+                n = without_self(row, n, i);
             }
             if !sink.keep(i, n) {
                 return false;
             }
         }
         true
+    }
+}
+
+/// The row row[..n] without query i itself, its new length: self-edges are decided by index,
+/// so coincident other particles stay.
+#[inline(always)]
+fn without_self(row: &mut [u32], n: usize, i: usize) -> usize {
+    match row[..n].iter().position(|&j| j as usize == i) {
+        Some(k) => {
+            row.swap(k, n - 1);
+            n - 1
+        }
+        None => n,
     }
 }
 
@@ -571,7 +570,57 @@ unsafe fn copy_24_down(src: *const u32, dst: *mut u32) {
     _mm256_storeu_si256(dst.add(16) as *mut __m256i, c);
 }
 
-/// [`compact_avx2`] for two queries at once, into out_a and out_b (w + 4 slots each).
+#[cfg(target_arch = "x86_64")]
+use std::arch::x86_64::{__m128i, __m256d};
+
+/// A query point broadcast to every lane, axis by axis (in 2D the last entry repeats y and
+/// is not used).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn broadcast<const D: usize>(q: &[f64; D]) -> [__m256d; 3] {
+    use std::arch::x86_64::*;
+    [
+        _mm256_set1_pd(q[0]),
+        _mm256_set1_pd(q[1]),
+        _mm256_set1_pd(q[D - 1]),
+    ]
+}
+
+/// Which of the 4 points (x, y, z) are within r2 of q: bit l for lane l. z is read in 3D only.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn near_mask<const D: usize>(
+    x: __m256d,
+    y: __m256d,
+    z: __m256d,
+    q: &[__m256d; 3],
+    r2: __m256d,
+) -> usize {
+    use std::arch::x86_64::*;
+    let dx = _mm256_sub_pd(x, q[0]);
+    let dy = _mm256_sub_pd(y, q[1]);
+    let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
+    if D == 3 {
+        let dz = _mm256_sub_pd(z, q[2]);
+        d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
+    }
+    _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2)) as usize
+}
+
+/// Stores the ids of idv that `mask` selects at out (a whole vector of 4) and returns how many.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+unsafe fn pack(idv: __m128i, mask: usize, out: *mut u32) -> usize {
+    use std::arch::x86_64::*;
+    let shuffle = _mm_loadu_si128(PACK[mask].as_ptr() as *const __m128i);
+    _mm_storeu_si128(out as *mut __m128i, _mm_shuffle_epi8(idv, shuffle));
+    // Counts from a table: `count_ones` (no POPCNT in this context) was turned into a
+    // vector popcount whose results crossed back to the integer registers every pass.
+    LANES[mask] as usize
+}
+
+/// [`compact_avx2`] for two queries at once, into out_a and out_b (w + 4 slots each): each
+/// load of the block serves both.
 ///
 /// # Safety
 /// As for [`compact_avx2`].
@@ -590,25 +639,8 @@ unsafe fn compact2_avx2<const D: usize>(
 ) -> (usize, usize) {
     use std::arch::x86_64::*;
     let (xs, ys, zs) = (coords, coords.add(stride), coords.add((D - 1) * stride));
-    let query = |q: &[f64; D]| {
-        (
-            _mm256_set1_pd(q[0]),
-            _mm256_set1_pd(q[1]),
-            _mm256_set1_pd(q[D - 1]),
-        )
-    };
-    let (qa, qb) = (query(q[0]), query(q[1]));
+    let (qa, qb) = (broadcast(q[0]), broadcast(q[1]));
     let r2v = _mm256_set1_pd(r2);
-    let d2 = |x: __m256d, y: __m256d, z: __m256d, q: (__m256d, __m256d, __m256d)| {
-        let dx = _mm256_sub_pd(x, q.0);
-        let dy = _mm256_sub_pd(y, q.1);
-        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
-        if D == 3 {
-            let dz = _mm256_sub_pd(z, q.2);
-            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
-        }
-        _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as usize
-    };
     let (mut na, mut nb) = (0, 0);
     let mut k = 0;
     while k < w {
@@ -620,15 +652,8 @@ unsafe fn compact2_avx2<const D: usize>(
             x
         };
         let idv = _mm_loadu_si128(ids.add(k) as *const __m128i);
-        let (ma, mb) = (d2(x, y, z, qa), d2(x, y, z, qb));
-        let sa = _mm_loadu_si128(PACK[ma].as_ptr() as *const __m128i);
-        let sb = _mm_loadu_si128(PACK[mb].as_ptr() as *const __m128i);
-        _mm_storeu_si128(out_a.add(na) as *mut __m128i, _mm_shuffle_epi8(idv, sa));
-        _mm_storeu_si128(out_b.add(nb) as *mut __m128i, _mm_shuffle_epi8(idv, sb));
-        // Counts from a table: `count_ones` (no POPCNT in this context) was turned into a
-        // vector popcount whose results crossed back to the integer registers every pass.
-        na += LANES[ma] as usize;
-        nb += LANES[mb] as usize;
+        na += pack(idv, near_mask::<D>(x, y, z, &qa, r2v), out_a.add(na));
+        nb += pack(idv, near_mask::<D>(x, y, z, &qb, r2v), out_b.add(nb));
         k += 4;
     }
     (na, nb)
@@ -652,27 +677,20 @@ unsafe fn compact_avx2<const D: usize>(
 ) -> usize {
     use std::arch::x86_64::*;
     let (xs, ys, zs) = (coords, coords.add(stride), coords.add((D - 1) * stride));
-    let (qx, qy, qz) = (
-        _mm256_set1_pd(q[0]),
-        _mm256_set1_pd(q[1]),
-        _mm256_set1_pd(q[D - 1]),
-    );
+    let q = broadcast(q);
     let r2v = _mm256_set1_pd(r2);
     let mut n = 0;
     let mut k = 0;
     while k < w {
-        let dx = _mm256_sub_pd(_mm256_loadu_pd(xs.add(k)), qx);
-        let dy = _mm256_sub_pd(_mm256_loadu_pd(ys.add(k)), qy);
-        let mut d2 = _mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy));
-        if D == 3 {
-            let dz = _mm256_sub_pd(_mm256_loadu_pd(zs.add(k)), qz);
-            d2 = _mm256_add_pd(d2, _mm256_mul_pd(dz, dz));
-        }
-        let mask = _mm256_movemask_pd(_mm256_cmp_pd::<_CMP_LE_OQ>(d2, r2v)) as usize;
+        let x = _mm256_loadu_pd(xs.add(k));
+        let y = _mm256_loadu_pd(ys.add(k));
+        let z = if D == 3 {
+            _mm256_loadu_pd(zs.add(k))
+        } else {
+            x
+        };
         let idv = _mm_loadu_si128(ids.add(k) as *const __m128i);
-        let shuffle = _mm_loadu_si128(PACK[mask].as_ptr() as *const __m128i);
-        _mm_storeu_si128(out.add(n) as *mut __m128i, _mm_shuffle_epi8(idv, shuffle));
-        n += LANES[mask] as usize;
+        n += pack(idv, near_mask::<D>(x, y, z, &q, r2v), out.add(n));
         k += 4;
     }
     n

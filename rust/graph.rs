@@ -853,20 +853,15 @@ impl RowPlace<'_> {
             let at = self.row_at[i] as usize;
             let src = rows.senders.as_ptr().add(at);
             let (ds, dr) = (out_s.ptr().add(o), out_r.ptr().add(o));
+            // Whole chunks, up to 15 values past the row, where that stays inside this part:
+            // the next rows overwrite them, and the rows' buffers hold ROW_SLACK values past
+            // every row.
+            let chunked = avx2 && o + len.next_multiple_of(4).max(16) <= end;
             #[cfg(target_arch = "x86_64")]
-            if avx2 && o + len.next_multiple_of(4).max(16) <= end {
-                // Whole chunks, up to 15 values past the row: the next rows overwrite them,
-                // and the rows' buffers hold ROW_SLACK values past every row.
+            if chunked {
                 write_row_avx2(src, ds, dr, i as i64, len);
-            } else {
-                for k in 0..len {
-                    *ds.add(k) = *src.add(k) as i64;
-                    *dr.add(k) = i as i64;
-                }
             }
-            #[cfg(not(target_arch = "x86_64"))]
-            {
-                let _ = avx2;
+            if !cfg!(target_arch = "x86_64") || !chunked {
                 for k in 0..len {
                     *ds.add(k) = *src.add(k) as i64;
                     *dr.add(k) = i as i64;
@@ -881,8 +876,6 @@ impl RowPlace<'_> {
                 );
             }
         }
-        // Only the AVX2 path checks it.
-        let _ = end;
     }
 }
 
