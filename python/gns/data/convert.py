@@ -163,7 +163,7 @@ def convert(
 def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
     if stride == 1:
         return metadata
-    frames = (metadata.sequence_length + 1 - stride) // stride + 1
+    frames = _strided_frames(metadata.sequence_length + 1, stride)
     if frames < 2:
         raise ValueError(
             f"frame_stride {stride} leaves fewer than 2 frames of the "
@@ -180,14 +180,19 @@ def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
     )
 
 
-def _strided(dataset: Iterable[Trajectory], split: str, stride: int) -> Iterator[Trajectory]:
-    for trajectory in dataset:
-        if stride == 1:
-            yield trajectory
-            continue
-        frames = (trajectory.num_frames - stride) // stride + 1
-        for phase in range(stride if split == "train" else 1):
-            yield subsample(trajectory, stride, phase, frames)
+def _strided_frames(frames: int, stride: int) -> int:
+    """Frames of the last phase (k - 1, 2k - 1, ...) of `frames`: what every phase keeps."""
+    return (frames - stride) // stride + 1
+
+
+def _strided(dataset: Iterable[Trajectory], split: str, stride: int) -> Iterable[Trajectory]:
+    if stride == 1:
+        return dataset
+    return (
+        subsample(trajectory, stride, phase, _strided_frames(trajectory.num_frames, stride))
+        for trajectory in dataset
+        for phase in range(stride if split == "train" else 1)
+    )
 
 
 def _target_metadata(
