@@ -87,11 +87,12 @@ import torch  # noqa: E402
 from gns.config import Config  # noqa: E402
 from gns.data import Trajectory, open_dataset  # noqa: E402
 from gns.data.windows import collate, trajectory_windows  # noqa: E402
+from gns.device import resolve_device  # noqa: E402
 from gns.machine import cpu_name  # noqa: E402
 from gns.model import EncodeProcessDecode, native_bf16  # noqa: E402
 from gns.rollout import TIMING_PARTS, rollout  # noqa: E402
 from gns.simulator import LearnedSimulator, Scene  # noqa: E402
-from gns.train import TrainingStep, batch_tensors, resolve_device  # noqa: E402
+from gns.train import TrainingStep, batch_tensors  # noqa: E402
 from torch import nn  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 

@@ -27,6 +27,7 @@ from gns.cconv import (
     neighbourhood,
     window_weight,
 )
+from gns.checkpoints import load_checkpoint, load_simulator
 from gns.config import (
     CConvConfig,
     Config,
@@ -41,7 +42,7 @@ from gns.data.h5 import write_h5
 from gns.report import report
 from gns.rollout import rollout
 from gns.simulator import LearnedSimulator, Scene
-from gns.train import TrainingStep, load_checkpoint, load_simulator, train
+from gns.train import TrainingStep, train
 from test_train import damped_motion
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")

@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 import torch
 from data_helpers import metadata_dict, random_walk, write_metadata
+from gns.checkpoints import latest_checkpoint
 from gns.cli import main
 from gns.config import Config, ModelConfig, TrainConfig
 from gns.data import open_dataset
 from gns.data.h5 import write_h5
 from gns.demo import demo
-from gns.train import latest_checkpoint, train
+from gns.train import train
 from PIL import Image
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from data_helpers import metadata_dict, write_metadata
+from gns.checkpoints import choose_checkpoint, latest_checkpoint, load_checkpoint, load_simulator
 from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
 from gns.data import Trajectory, open_dataset
 from gns.data.h5 import write_h5
@@ -22,10 +23,6 @@ from gns.train import (
     TrainingStep,
     batch_tensors,
     better_validation,
-    choose_checkpoint,
-    latest_checkpoint,
-    load_checkpoint,
-    load_simulator,
     stays_in_box,
     train,
     validate,

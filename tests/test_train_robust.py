@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from gns.checkpoints import load_checkpoint, load_simulator
 from gns.config import TrainConfig, load_config
-from gns.train import TrainingStep, load_checkpoint, load_simulator, train
+from gns.train import TrainingStep, train
 from test_train import config, make_dataset, parameters, read_csv
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")

@@ -241,9 +241,10 @@ def run_folder(run: Path) -> Path:
 
 
 def run_rollout(args: argparse.Namespace) -> int:
+    from gns.checkpoints import choose_checkpoint, load_simulator
     from gns.data import open_dataset
+    from gns.device import resolve_device
     from gns.rollout import RolloutDiverged, rollout, save_deepmind_pickle, save_rollout
-    from gns.train import choose_checkpoint, load_simulator, resolve_device
 
     set_threads(args.threads)
     device = resolve_device(args.device)
@@ -283,11 +284,12 @@ def run_rollout(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
+    from gns.checkpoints import choose_checkpoint, load_simulator
     from gns.data import open_dataset
     from gns.data.atomic import write_json_atomic
+    from gns.device import resolve_device
     from gns.evaluate import evaluate_rollouts, one_step_errors
     from gns.rollout import load_rollout
-    from gns.train import choose_checkpoint, load_simulator, resolve_device
 
     set_threads(args.threads)
     folder = args.rollouts or run_folder(args.run) / "rollouts" / args.split

@@ -124,9 +124,10 @@ def demo(
     size: one of SIZES; train_minutes, steps, trajectories (train, valid, test) and frames
     override its values. The test split is what the report rolls out.
     """
+    from gns.checkpoints import latest_checkpoint, load_checkpoint
     from gns.generate import PRESETS, generate
     from gns.report import report
-    from gns.train import latest_checkpoint, load_checkpoint, train
+    from gns.train import train
 
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")

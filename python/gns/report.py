@@ -341,8 +341,8 @@ def _learned_row(
 ) -> tuple[Row, list[np.ndarray]]:
     """Roll the checkpoint out on every trajectory (timed), save the rollouts, score them.
     Returns the row and the predictions (S, N, D) per trajectory, NaN after a divergence."""
+    from gns.checkpoints import load_checkpoint, load_simulator
     from gns.rollout import RolloutDiverged, rollout, save_rollout
-    from gns.train import load_checkpoint, load_simulator
 
     step = load_checkpoint(checkpoint).get("step")
     simulator = load_simulator(checkpoint, device)
@@ -597,7 +597,7 @@ def report(
     """
 
     from gns.data import open_dataset
-    from gns.train import resolve_device
+    from gns.device import resolve_device
 
     started = time.perf_counter()
     say = _say(progress)
@@ -631,7 +631,7 @@ def report(
     kinematic_types = sorted(dataset.metadata.kinematic_particle_types)
     items = [dataset[i] for i in indices]
 
-    from gns.train import load_checkpoint
+    from gns.checkpoints import load_checkpoint
 
     history = load_checkpoint(chosen[0])["config"]["model"]["velocity_history"] + 1
     steps = min(t.num_frames for t in items) - history
@@ -754,7 +754,7 @@ def report(
 
 def _checkpoint(run: Path, which: str) -> Path:
     """A run's "auto" / "best" / "latest" checkpoint, or a checkpoint file's path."""
-    from gns.train import choose_checkpoint
+    from gns.checkpoints import choose_checkpoint
 
     path = choose_checkpoint(run, which) if which in ("auto", "best", "latest") else Path(which)
     if not path.is_file():

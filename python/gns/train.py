@@ -31,11 +31,9 @@ import math
 import os
 import sys
 import time
-import zipfile
 from collections import deque
 from collections.abc import Sequence
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -44,47 +42,29 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from gns.augment import check_mirror_axes, mirror_batch
+from gns.checkpoints import (
+    CHECKPOINT_FORMAT,
+    build_simulator,
+    latest_checkpoint,
+    remove_stale_temporaries,
+    resume_checkpoint,
+    save_checkpoint,
+    statistics_dict,
+)
 from gns.config import Config, TrainConfig, from_dict, to_dict
 from gns.data import open_dataset
 from gns.data.atomic import atomic_file
 from gns.data.windows import Batch, WindowSampler
+from gns.device import resolve_device
 from gns.normalization import RunningNormalizer
 from gns.simulator import LearnedSimulator, Scene
 
-__all__ = [
-    "TrainingStep",
-    "batch_tensors",
-    "choose_checkpoint",
-    "latest_checkpoint",
-    "load_checkpoint",
-    "load_simulator",
-    "resolve_device",
-    "save_checkpoint",
-    "train",
-    "validate",
-]
+__all__ = ["TrainingStep", "batch_tensors", "better_validation", "train", "validate"]
 
-CHECKPOINT_FORMAT = "gns-checkpoint-1"
-# What load_simulator needs (best.pt holds only these), and what an exact resume needs too.
-WEIGHTS_KEYS = ("format", "step", "config", "scene", "statistics", "model")
-RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "sampler", "noise_generator")
 # Loss spikes are measured against the median loss of this many previous steps, once there
 # are at least SPIKE_MIN_HISTORY of them (see TrainConfig.spike_factor).
 SPIKE_WINDOW = 100
 SPIKE_MIN_HISTORY = 20
-
-
-# ---------------------------------------------------------------------------------- devices
-
-
-def resolve_device(device: str | torch.device = "auto") -> torch.device:
-    """ "auto" is CUDA when there is a GPU, else the CPU; other names are checked to exist."""
-    if str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    resolved = torch.device(device)
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device {str(device)!r} asked for, but torch sees no CUDA device")
-    return resolved
 
 
 # ---------------------------------------------------------------------------------- one step
@@ -173,167 +153,6 @@ class TrainingStep(nn.Module):
                 )
                 squared = squared + (predicted.float() - target.float()).square().sum(dim=-1)
         return squared[free].sum(), free.sum()
-
-
-# ---------------------------------------------------------------------------------- checkpoints
-
-
-def _statistics_dict(metadata: Any) -> dict[str, list[float] | None]:
-    names = ("vel_mean", "vel_std", "acc_mean", "acc_std", "context_mean", "context_std")
-    out: dict[str, list[float] | None] = {}
-    for name in names:
-        value = getattr(metadata, name, None)
-        out[name] = None if value is None else [float(v) for v in np.asarray(value).reshape(-1)]
-    return out
-
-
-def _scene_from_dict(data: dict[str, Any]) -> Scene:
-    def tuples(value: Any) -> Any:
-        return tuple(tuples(v) for v in value) if isinstance(value, list) else value
-
-    return Scene(**{key: tuples(value) for key, value in data.items()})
-
-
-def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:
-    """torch.save `state` to `path` atomically (a crash never leaves a half-written file)."""
-    with atomic_file(path) as tmp:
-        torch.save(state, tmp)
-
-
-def _check_archive(path: str | os.PathLike[str]) -> None:
-    """ValueError unless `path` is a complete zip archive (torch.save's format) whose members all
-    match their CRC-32: torch.load itself notices truncation but reads flipped bytes silently."""
-    name = os.fspath(path)
-    try:
-        size = os.path.getsize(path)
-    except OSError as err:
-        raise ValueError(f"{name}: cannot read the checkpoint ({err})") from err
-    if size == 0:
-        raise ValueError(f"{name}: the checkpoint is empty (0 bytes)")
-    try:
-        with zipfile.ZipFile(path) as archive:
-            for info in archive.infolist():
-                if info.CRC == 0 and info.file_size:
-                    continue  # saved with torch's CRC-32 turned off: nothing to compare
-                with archive.open(info) as member:
-                    while member.read(1 << 20):
-                        pass
-    except Exception as err:  # BadZipFile, EOFError, OSError, struct.error, ...
-        raise ValueError(
-            f"{name}: the checkpoint is truncated or corrupted ({type(err).__name__}: {err})"
-        ) from err
-
-
-def load_checkpoint(path: str | os.PathLike[str], resume: bool = False) -> dict[str, Any]:
-    """A checkpoint dict; tensors are loaded on the CPU (weights_only: nothing is executed).
-
-    Verified first: a truncated or corrupted file (every member's CRC-32 is checked), one that
-    is not a gns checkpoint, or one without the entries the model needs (`resume`: and those an
-    exact resume needs) raises ValueError naming the file and what is wrong."""
-    name = os.fspath(path)
-    _check_archive(path)
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise ValueError(f"{name}: not a readable gns checkpoint ({err})") from err
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{name}: not a gns checkpoint (format {CHECKPOINT_FORMAT})")
-    missing = [key for key in (RESUME_KEYS if resume else WEIGHTS_KEYS) if key not in state]
-    if missing:
-        hint = " (weights only: resume from a step_*.pt)" if resume else ""
-        raise ValueError(f"{name}: the checkpoint lacks {', '.join(missing)}{hint}")
-    step = state["step"]
-    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
-        raise ValueError(f"{name}: the checkpoint's step is {step!r}, not a count of steps")
-    model = state["model"]
-    if not isinstance(model, dict) or not all(isinstance(v, Tensor) for v in model.values()):
-        raise ValueError(f"{name}: the checkpoint's model entry is not a dict of tensors")
-    return state
-
-
-def latest_checkpoint(run_dir: str | os.PathLike[str]) -> Path | None:
-    """The checkpoint with the highest step in run_dir/checkpoints, or None."""
-    folder = Path(run_dir) / "checkpoints"
-    found = sorted(folder.glob("step_*.pt")) if folder.is_dir() else []
-    return found[-1] if found else None
-
-
-def _resume_checkpoint(run_dir: Path, announce: bool) -> tuple[Path, dict[str, Any]]:
-    """The newest intact step_*.pt of run_dir and its contents. A newer one that fails
-    verification is skipped with a loud message on stderr (`announce`: this process reports);
-    it stays in place and is overwritten when training reaches its step again."""
-    folder = run_dir / "checkpoints"
-    found = sorted(folder.glob("step_*.pt"), reverse=True) if folder.is_dir() else []
-    if not found:
-        raise ValueError(f"--resume: no checkpoint in {folder}")
-    problems: list[str] = []
-    for path in found:
-        try:
-            state = load_checkpoint(path, resume=True)
-        except ValueError as err:
-            problems.append(str(err))
-            if announce:
-                sys.stderr.write(f"WARNING: {err}; skipping it\n")
-            continue
-        if problems and announce:
-            sys.stderr.write(
-                f"WARNING: resuming from {path} (step {state['step']}), the newest intact "
-                f"checkpoint; {len(problems)} newer one(s) could not be used (above), and the "
-                "steps after it are trained again\n"
-            )
-        return path, state
-    raise ValueError(
-        f"--resume: no intact checkpoint in {folder}: "
-        + "; ".join(problems)
-        + ". Delete the corrupted files; with none left, start a new run folder"
-    )
-
-
-def _remove_stale_temporaries(run_dir: Path) -> None:
-    """Temporary files of atomic writes that a killed run left behind (never read)."""
-    for folder in (run_dir, run_dir / "checkpoints"):
-        if folder.is_dir():
-            for tmp in folder.glob(".*.tmp"):
-                tmp.unlink(missing_ok=True)
-
-
-def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
-    """The checkpoint file meant by `path`: the file itself, or in a run folder "latest" (the
-    highest step), "best" (the best validation, see `better_validation`) or "auto" (best when
-    the run has one, otherwise latest)."""
-    path = Path(path)
-    if not path.is_dir():
-        if which != "auto":
-            raise ValueError(f"checkpoint {which!r} picks from a run folder, but {path} is a file")
-        return path
-    if which not in ("auto", "best", "latest"):
-        raise ValueError(f"checkpoint must be 'auto', 'best' or 'latest', got {which!r}")
-    best = path / "checkpoints" / "best.pt"
-    if which == "best" or (which == "auto" and best.is_file()):
-        if not best.is_file():
-            raise ValueError(f"{path}: no {best.name} (the run has not been validated)")
-        return best
-    found = latest_checkpoint(path)
-    if found is None:
-        raise ValueError(f"{path}: no checkpoints in {path / 'checkpoints'}")
-    return found
-
-
-def load_simulator(
-    path: str | os.PathLike[str], device: str | torch.device = "cpu", checkpoint: str = "auto"
-) -> LearnedSimulator:
-    """The trained simulator of a checkpoint file or of a run folder (see choose_checkpoint)."""
-    state = load_checkpoint(choose_checkpoint(path, checkpoint))
-    simulator = _build_simulator(state["config"], state["scene"], state["statistics"])
-    simulator.load_state_dict(state["model"])
-    return simulator.to(resolve_device(device))
-
-
-def _build_simulator(
-    config: dict[str, Any], scene: dict[str, Any], statistics: dict[str, Any] | None
-) -> LearnedSimulator:
-    stats = None if statistics is None else SimpleNamespace(**statistics)
-    return LearnedSimulator(_scene_from_dict(scene), from_dict(Config, config), statistics=stats)
 
 
 # ---------------------------------------------------------------------------------- logs
@@ -625,7 +444,7 @@ def train(
     checkpoint: dict[str, Any] | None = None
     found = latest_checkpoint(run_dir)
     if resume:
-        found, checkpoint = _resume_checkpoint(run_dir, announce=leader)
+        found, checkpoint = resume_checkpoint(run_dir, announce=leader)
         saved = from_dict(Config, checkpoint["config"])
         # Only the number of steps may change on resume (to train a run for longer).
         if config is not None:
@@ -649,7 +468,7 @@ def train(
     dataset = open_dataset(data, "train")
     history = config.model.velocity_history + 1
     if checkpoint is not None:
-        simulator = _build_simulator(
+        simulator = build_simulator(
             checkpoint["config"], checkpoint["scene"], checkpoint["statistics"]
         )
         simulator.load_state_dict(checkpoint["model"])
@@ -658,7 +477,7 @@ def train(
         torch.manual_seed(tc.seed)  # the initial weights (the same on every rank)
         simulator = LearnedSimulator(scene, config, statistics=dataset.metadata)
     simulator.to(device).train()
-    statistics = _statistics_dict(dataset.metadata)
+    statistics = statistics_dict(dataset.metadata)
     check_mirror_axes(
         tc.mirror_axes, simulator.scene.dim, dataset.metadata.acc_mean, dataset.metadata.acc_std
     )
@@ -701,7 +520,7 @@ def train(
         best = checkpoint.get("best")
 
     if leader:
-        _remove_stale_temporaries(run_dir)
+        remove_stale_temporaries(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "checkpoints").mkdir(exist_ok=True)
         with atomic_file(run_dir / "config.json") as tmp:
