@@ -196,7 +196,8 @@ def add_checkpoint_option(parser: argparse.ArgumentParser) -> None:
         "--checkpoint",
         choices=("auto", "best", "latest"),
         default="auto",
-        help="which checkpoint of a run folder: best (lowest validation rollout MSE), latest, "
+        help="which checkpoint of a run folder: best (validation rollouts inside the box first, "
+        "then the lowest validation rollout MSE), latest, "
         "or auto (default: best when the run was validated, otherwise latest)",
     )
 
