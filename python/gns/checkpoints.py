@@ -45,6 +45,7 @@ RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "sampler", "noise_generator")
 
 
 def statistics_dict(metadata: Any) -> dict[str, list[float] | None]:
+    """The metadata statistics the simulator was built with, as plain lists for a checkpoint."""
     names = ("vel_mean", "vel_std", "acc_mean", "acc_std", "context_mean", "context_std")
     out: dict[str, list[float] | None] = {}
     for name in names:
@@ -165,8 +166,8 @@ def remove_stale_temporaries(run_dir: Path) -> None:
 
 def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
     """The checkpoint file meant by `path`: the file itself, or in a run folder "latest" (the
-    highest step), "best" (the best validation, see `better_validation`) or "auto" (best when
-    the run has one, otherwise latest)."""
+    highest step), "best" (the best validation, see gns.train.better_validation) or "auto"
+    (best when the run has one, otherwise latest)."""
     path = Path(path)
     if not path.is_dir():
         if which != "auto":
@@ -198,5 +199,6 @@ def load_simulator(
 def build_simulator(
     config: dict[str, Any], scene: dict[str, Any], statistics: dict[str, Any] | None
 ) -> LearnedSimulator:
+    """An untrained simulator of a checkpoint's config, scene and statistics."""
     stats = None if statistics is None else SimpleNamespace(**statistics)
     return LearnedSimulator(_scene_from_dict(scene), from_dict(Config, config), statistics=stats)
