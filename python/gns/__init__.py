@@ -24,7 +24,7 @@ _LAZY = {
     "EncodeProcessDecode": "gns.model",
     "LearnedSimulator": "gns.simulator",
     "Scene": "gns.simulator",
-    "load_simulator": "gns.train",
+    "load_simulator": "gns.checkpoints",
     "Rollout": "gns.rollout",
     "evaluate_rollouts": "gns.evaluate",
 }

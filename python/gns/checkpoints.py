@@ -35,6 +35,7 @@ __all__ = [
     "remove_stale_temporaries",
     "resume_checkpoint",
     "save_checkpoint",
+    "simulator_from_checkpoint",
     "statistics_dict",
 ]
 
@@ -190,7 +191,13 @@ def load_simulator(
     path: str | os.PathLike[str], device: str | torch.device = "cpu", checkpoint: str = "auto"
 ) -> LearnedSimulator:
     """The trained simulator of a checkpoint file or of a run folder (see choose_checkpoint)."""
-    state = load_checkpoint(choose_checkpoint(path, checkpoint))
+    return simulator_from_checkpoint(load_checkpoint(choose_checkpoint(path, checkpoint)), device)
+
+
+def simulator_from_checkpoint(
+    state: dict[str, Any], device: str | torch.device = "cpu"
+) -> LearnedSimulator:
+    """The trained simulator of a checkpoint already read by load_checkpoint."""
     simulator = build_simulator(state["config"], state["scene"], state["statistics"])
     simulator.load_state_dict(state["model"])
     return simulator.to(resolve_device(device))

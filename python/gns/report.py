@@ -327,6 +327,7 @@ def _device_label(device: Any) -> str:
 
 def _learned_row(
     checkpoint: Path,
+    state: dict[str, Any],
     trajectories: list[Any],
     indices: list[int],
     history: int,
@@ -339,13 +340,14 @@ def _learned_row(
     dataset_name: str,
     say: Callable[[str], None],
 ) -> tuple[Row, list[np.ndarray]]:
-    """Roll the checkpoint out on every trajectory (timed), save the rollouts, score them.
-    Returns the row and the predictions (S, N, D) per trajectory, NaN after a divergence."""
-    from gns.checkpoints import load_checkpoint, load_simulator
+    """Roll the checkpoint (`state`, as read from the file `checkpoint`) out on every trajectory
+    (timed), save the rollouts, score them. Returns the row and the predictions (S, N, D) per
+    trajectory, NaN after a divergence."""
+    from gns.checkpoints import simulator_from_checkpoint
     from gns.rollout import RolloutDiverged, rollout, save_rollout
 
-    step = load_checkpoint(checkpoint).get("step")
-    simulator = load_simulator(checkpoint, device)
+    step = state.get("step")
+    simulator = simulator_from_checkpoint(state, device)
     c = simulator.config.model.velocity_history
     if c + 1 != history:
         raise ValueError(
@@ -633,7 +635,9 @@ def report(
 
     from gns.checkpoints import load_checkpoint
 
-    history = load_checkpoint(chosen[0])["config"]["model"]["velocity_history"] + 1
+    # Each file read and CRC-checked once, here.
+    states = [load_checkpoint(path) for path in chosen]
+    history = states[0]["config"]["model"]["velocity_history"] + 1
     steps = min(t.num_frames for t in items) - history
     if steps < 1:
         raise ValueError(
@@ -652,9 +656,10 @@ def report(
         p.stem if [q.stem for q in chosen].count(p.stem) == 1 else f"{k}_{p.stem}"
         for k, p in enumerate(chosen)
     ]
-    for path, stem in zip(chosen, stems, strict=True):
+    for path, state, stem in zip(chosen, states, stems, strict=True):
         row, predicted = _learned_row(
             path,
+            state,
             items,
             indices,
             history,
