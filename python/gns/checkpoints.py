@@ -27,7 +27,6 @@ __all__ = [
     "CHECKPOINT_FORMAT",
     "RESUME_KEYS",
     "WEIGHTS_KEYS",
-    "build_simulator",
     "choose_checkpoint",
     "latest_checkpoint",
     "load_checkpoint",
@@ -198,14 +197,11 @@ def simulator_from_checkpoint(
     state: dict[str, Any], device: str | torch.device = "cpu"
 ) -> LearnedSimulator:
     """The trained simulator of a checkpoint already read by load_checkpoint."""
-    simulator = build_simulator(state["config"], state["scene"], state["statistics"])
+    statistics = state["statistics"]
+    simulator = LearnedSimulator(
+        _scene_from_dict(state["scene"]),
+        from_dict(Config, state["config"]),
+        statistics=None if statistics is None else SimpleNamespace(**statistics),
+    )
     simulator.load_state_dict(state["model"])
     return simulator.to(resolve_device(device))
-
-
-def build_simulator(
-    config: dict[str, Any], scene: dict[str, Any], statistics: dict[str, Any] | None
-) -> LearnedSimulator:
-    """An untrained simulator of a checkpoint's config, scene and statistics."""
-    stats = None if statistics is None else SimpleNamespace(**statistics)
-    return LearnedSimulator(_scene_from_dict(scene), from_dict(Config, config), statistics=stats)

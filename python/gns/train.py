@@ -44,11 +44,11 @@ from torch import Tensor, nn
 from gns.augment import check_mirror_axes, mirror_batch
 from gns.checkpoints import (
     CHECKPOINT_FORMAT,
-    build_simulator,
     latest_checkpoint,
     remove_stale_temporaries,
     resume_checkpoint,
     save_checkpoint,
+    simulator_from_checkpoint,
     statistics_dict,
 )
 from gns.config import Config, TrainConfig, from_dict, to_dict
@@ -468,10 +468,7 @@ def train(
     dataset = open_dataset(data, "train")
     history = config.model.velocity_history + 1
     if checkpoint is not None:
-        simulator = build_simulator(
-            checkpoint["config"], checkpoint["scene"], checkpoint["statistics"]
-        )
-        simulator.load_state_dict(checkpoint["model"])
+        simulator = simulator_from_checkpoint(checkpoint)
     else:
         scene = Scene.from_dataset(dataset, config.scene)
         torch.manual_seed(tc.seed)  # the initial weights (the same on every rank)
