@@ -157,6 +157,42 @@ def test_learning_rate_follows_the_papers_schedule(tmp_path):
         assert float(row["learning_rate"]) == pytest.approx(expected, rel=1e-6)
 
 
+def test_max_grad_norm_bounds_every_update_and_the_log_shows_the_norm_before_clipping(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    cfg = lambda **kw: config(4, log_every=1, **kw)  # noqa: E731
+    lr = 1e-3
+    # A learning rate of 1e-30 leaves float32 weights as initialised: the starting point.
+    start = parameters(
+        train(
+            data,
+            tmp_path / "start",
+            cfg(learning_rate=1e-30, learning_rate_final=0.0),
+            progress=False,
+        )
+    )
+    free = parameters(train(data, tmp_path / "free", cfg(), progress=False))
+    loose = parameters(train(data, tmp_path / "loose", cfg(max_grad_norm=1e30), progress=False))
+    tight = parameters(train(data, tmp_path / "tight", cfg(max_grad_norm=1e-12), progress=False))
+    weights = [k for k in start if "normalizer" not in k]
+    moved = lambda run: max(float((run[k] - start[k]).abs().max()) for k in weights)  # noqa: E731
+    # Adam's first step moves a weight by about the learning rate whatever the gradient's
+    # scale; a gradient cut to norm 1e-12 is far below Adam's eps (1e-8), so 4 steps move a
+    # weight by at most 4 * lr * 1e-12 / 1e-8.
+    assert moved(free) > 0.5 * lr
+    assert moved(tight) < 4 * lr * 1e-4 * 1.01
+    for k in start:  # a bound never reached changes nothing, bit for bit
+        assert torch.equal(loose[k], free[k]), k
+    rows = {name: read_csv(tmp_path / name / "train.csv") for name in ("free", "tight")}
+    assert [float(r["clipped"]) for r in rows["tight"]] == [1.0] * 4
+    assert [float(r["clipped"]) for r in rows["free"]] == [0.0] * 4
+    # The same first batch from the same weights: the logged norm is the one before clipping.
+    first = float(rows["free"][0]["grad_norm"])
+    assert first > 0 and float(rows["tight"][0]["grad_norm"]) == pytest.approx(first, rel=1e-6)
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="max_grad_norm"):
+            TrainConfig(max_grad_norm=bad)
+
+
 def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets(tmp_path):
     data = make_dataset(tmp_path / "data")
     simulator = train(data, tmp_path / "run", config(2), progress=False)

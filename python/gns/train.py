@@ -574,6 +574,7 @@ def train(
             old.unlink()
 
     losses: list[float] = []
+    grad_norms: list[float] = []  # before clipping, since the last log line
     # The losses of the last SPIKE_WINDOW steps (the global loss under DDP), for spikes.
     recent: deque[float] = deque(maxlen=SPIKE_WINDOW)
     if checkpoint is not None:
@@ -618,24 +619,27 @@ def train(
             loss.backward()
             # Before the optimizer applies anything: are the loss and every gradient finite?
             # One synchronisation (and under DDP one all-reduce, so all ranks agree): the
-            # loss, and the largest |gradient|, which cannot overflow and is NaN if any is.
+            # loss, the largest |gradient|, which cannot overflow and is NaN if any is, and
+            # the gradient's 2-norm (for clipping and the log).
             grads = [p.grad for p in parameters if p.grad is not None]
-            largest = (
-                torch.nn.utils.get_total_norm(grads, norm_type=math.inf)
-                if grads
-                else torch.zeros((), device=device)
-            )
-            health = torch.stack([loss.detach().float(), largest.float()])
+            zero = torch.zeros((), device=device)
+            largest = torch.nn.utils.get_total_norm(grads, norm_type=math.inf) if grads else zero
+            grad_norm = torch.nn.utils.get_total_norm(grads) if grads else zero
+            health = torch.stack([loss.detach().float(), largest.float(), grad_norm.float()])
             if world > 1:
-                health /= world  # the sum over ranks: the global loss; |gradient| as is
+                # The sum over ranks: the global loss; the gradient (averaged by DDP) as is.
+                health /= world
                 _all_reduce_sum(health)
-            global_loss, largest_grad = health.tolist()
+            global_loss, largest_grad, norm = health.tolist()
             value = global_loss if world == 1 else float(loss.detach())
             if not (math.isfinite(global_loss) and math.isfinite(largest_grad)):
                 windows = _batch_windows(batch, world)
                 raise FloatingPointError(
                     _non_finite_message(step, global_loss, value, simulator, windows, world)
                 )
+            if tc.max_grad_norm is not None:
+                torch.nn.utils.clip_grads_with_norm_(parameters, tc.max_grad_norm, grad_norm)
+            grad_norms.append(norm)
             optimizer.step()
             done = step + 1
             if tc.spike_factor and len(recent) >= SPIKE_MIN_HISTORY:
@@ -670,10 +674,14 @@ def train(
                             "loss": float(mean),
                             "learning_rate": tc.learning_rate_at(step),
                             "steps_per_second": meter.rate(done),
+                            "grad_norm": float(np.median(grad_norms)),
+                            "clipped": float(
+                                np.mean(np.array(grad_norms) > (tc.max_grad_norm or np.inf))
+                            ),
                         },
                     )
                 meter.show(done, float(mean), force=True)
-                losses = []
+                losses, grad_norms = [], []
             if log is not None and tc.validate_every and done % tc.validate_every == 0:
                 figures = validate(simulator, valid_trajectories, tc, device)
                 if figures:
