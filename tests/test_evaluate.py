@@ -9,7 +9,7 @@ import pytest
 import torch
 from gns.cli import main
 from gns.config import Config, ModelConfig
-from gns.evaluate import evaluate_rollouts, one_step_errors, outside_box
+from gns.evaluate import evaluate_rollouts, mean_neighbours, one_step_errors, outside_box
 from gns.rollout import Rollout, load_rollout
 from gns.simulator import LearnedSimulator, Scene
 from test_train import make_dataset
@@ -104,6 +104,52 @@ def test_outside_box_by_hand():
     positions = np.array([[[0.5, 0.5], [0.95, 0.2]], [[0.05, 0.5], [0.5, 0.5]]])
     assert outside_box(positions, [[0.1, 0.9], [0.1, 0.9]]) == pytest.approx(0.05)
     assert outside_box(positions[:, :1][:1], [[0.1, 0.9], [0.1, 0.9]]) == 0.0
+
+
+def scipy_mean_neighbours(x: np.ndarray, radius: float, boxsize=None) -> float:
+    """The oracle: other particles within radius (inclusive), by scipy's k-d tree."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(x, boxsize=boxsize).query_pairs(radius, output_type="ndarray")
+    return 2 * len(pairs) / len(x)
+
+
+def test_mean_neighbours_against_scipy_open_and_periodic():
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.1, 0.9, size=(500, 2))
+    assert mean_neighbours(x, 0.05) == pytest.approx(scipy_mean_neighbours(x, 0.05), rel=1e-12)
+    bounds = [[0.1, 0.9], [0.1, 0.9]]
+    periodic = mean_neighbours(x, 0.05, bounds, [True, True])
+    assert periodic == pytest.approx(scipy_mean_neighbours(x - 0.1, 0.05, boxsize=0.8), rel=1e-12)
+    assert periodic > mean_neighbours(x, 0.05)  # the images across the edges count
+    assert mean_neighbours(np.zeros((0, 2)), 0.05) == 0.0
+
+
+def test_density_ratio_shows_a_rollout_that_packs_its_particles_closer():
+    rollout = synthetic_rollout()
+    rng = np.random.default_rng(4)
+    n = rollout.initial_positions.shape[1]
+    truth = rollout.ground_truth_rollout.copy()
+    truth[-1] = rng.uniform(0.3, 0.7, size=(n, 2))
+    packed = truth.copy()
+    packed[-1] = 0.5 + 0.5 * (truth[-1] - 0.5)  # the last frame shrunk to half its size
+    radius = 0.15
+    metadata = {**rollout.metadata, "connectivity_radius": radius}
+    report = evaluate_rollouts(
+        [
+            Rollout(
+                rollout.initial_positions, packed, truth, rollout.particle_type, metadata=metadata
+            )
+        ]
+    )
+    free = rollout.particle_type != 3
+    expected = scipy_mean_neighbours(packed[-1, free], radius) / scipy_mean_neighbours(
+        truth[-1, free], radius
+    )
+    assert expected > 1.5  # a real compaction, not a rounding
+    assert report["mean"]["model"]["density_ratio"] == pytest.approx(expected, rel=1e-12)
+    # Without a radius in the metadata there is nothing to count against.
+    assert "density_ratio" not in evaluate_rollouts([rollout])["mean"]["model"]
 
 
 def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):

@@ -4,7 +4,8 @@ to the constant-velocity baseline (every particle keeps its last velocity) on th
     one_step_errors(simulator, dataset)   position MSE of single steps from ground-truth inputs
     evaluate_rollouts(rollouts)           per-trajectory and mean rollout metrics (MSE over time
                                           and at horizons, OT, MMD), model and baseline, plus how
-                                          far any particle left the box
+                                          far any particle left the box and how densely the
+                                          last frame is packed against the ground truth
 The metrics themselves are gns.metrics; this module only decides what is compared with what.
 """
 
@@ -21,7 +22,7 @@ from gns.metrics import DEFAULT_HORIZONS, constant_velocity_rollout, evaluate_ro
 from gns.rollout import Rollout
 from gns.simulator import LearnedSimulator
 
-__all__ = ["evaluate_rollouts", "one_step_errors", "outside_box"]
+__all__ = ["evaluate_rollouts", "mean_neighbours", "one_step_errors", "outside_box"]
 
 MODELS = ("model", "constant_velocity")
 
@@ -77,6 +78,29 @@ def outside_box(positions: np.ndarray, bounds: Sequence[Sequence[float]]) -> flo
     return float(max(0.0, below.max(), above.max()))
 
 
+def mean_neighbours(
+    positions: np.ndarray,
+    radius: float,
+    bounds: Sequence[Sequence[float]] | None = None,
+    periodic: Sequence[bool] | None = None,
+) -> float:
+    """The mean number of other particles within `radius` of a particle of one frame (N, D),
+    minimum image on periodic axes: how densely the frame is packed."""
+    from gns import radius_graph
+
+    x = np.asarray(positions, dtype=np.float64)
+    if len(x) == 0:
+        return 0.0
+    kwargs: dict[str, Any] = {"self_edges": False}
+    if periodic is not None and any(periodic):
+        if bounds is None:
+            raise ValueError("mean_neighbours: periodic axes need the bounds of the box")
+        box = np.asarray(bounds, dtype=np.float64)
+        x = x - box[:, 0]
+        kwargs.update(box=(box[:, 1] - box[:, 0]).tolist(), periodic=list(periodic))
+    return radius_graph(x, radius, **kwargs).shape[1] / len(x)
+
+
 def evaluate_rollouts(
     rollouts: Sequence[Rollout],
     *,
@@ -90,7 +114,10 @@ def evaluate_rollouts(
     kinematic_particle_types) are held to the ground truth in both and left out of every
     metric. Returns {"trajectories": [per-rollout dicts], "mean": {model: {metric: value}}}
     where a per-rollout dict holds, per model, the scalar metrics ("mse@h", "mse@full",
-    "ot_mean", "mmd_mean", "outside_box", "finite") and the per-frame "mse" curve.
+    "ot_mean", "mmd_mean", "outside_box", "finite", "density_ratio") and the per-frame "mse"
+    curve. density_ratio is the last frame's mean neighbour count within the connectivity
+    radius over the ground truth's: a simulator that loses volume packs its particles ever
+    closer (above 1), one that lets them fly apart spreads them (below 1).
     """
     if not rollouts:
         raise ValueError("no rollouts to evaluate")
@@ -126,6 +153,7 @@ def _evaluate_one(
     diverged_at = r.metadata.get("diverged_at_step")
     entry: dict[str, Any] = {"trajectory": r.metadata.get("trajectory")}
     bounds = r.metadata.get("bounds")
+    radius, periodic = r.metadata.get("connectivity_radius"), r.metadata.get("periodic")
     if bounds is not None and r.num_steps:
         entry["ground_truth_outside_box"] = outside_box(r.ground_truth_rollout, bounds)
     if diverged_at is not None:
@@ -166,5 +194,10 @@ def _evaluate_one(
         scalars["finite"] = float(finite)
         if bounds is not None:
             scalars["outside_box"] = outside_box(predicted, bounds) if finite else np.inf
+        if radius is not None and finite:
+            free = ~kinematic
+            truth = mean_neighbours(r.ground_truth_rollout[-1, free], radius, bounds, periodic)
+            ours = mean_neighbours(predicted[-1, free], radius, bounds, periodic)
+            scalars["density_ratio"] = ours / truth if truth > 0 else np.nan
         entry[name] = {**scalars, "mse": metrics["mse"].tolist()}
     return entry
