@@ -170,11 +170,17 @@ def _evaluate_one(
         kinematic_mask=kinematic,
         ground_truth=r.ground_truth_rollout,
     )
+    free = ~kinematic
+    # The ground truth's packing, the reference of both density ratios, counted once.
+    truth_neighbours = None
+    if radius is not None:
+        last = r.ground_truth_rollout[-1, free]
+        truth_neighbours = mean_neighbours(last, radius, bounds, periodic)
     for name, predicted in (("model", r.predicted_rollout), ("constant_velocity", baseline)):
         metrics = evaluate_rollout(
             predicted,
             r.ground_truth_rollout,
-            mask=~kinematic,
+            mask=free,
             horizons=horizons,
             distribution_every=distribution_every,
             bandwidth=bandwidth,
@@ -194,10 +200,8 @@ def _evaluate_one(
         scalars["finite"] = float(finite)
         if bounds is not None:
             scalars["outside_box"] = outside_box(predicted, bounds) if finite else np.inf
-        if radius is not None and finite:
-            free = ~kinematic
-            truth = mean_neighbours(r.ground_truth_rollout[-1, free], radius, bounds, periodic)
+        if truth_neighbours is not None and finite:
             ours = mean_neighbours(predicted[-1, free], radius, bounds, periodic)
-            scalars["density_ratio"] = ours / truth if truth > 0 else np.nan
+            scalars["density_ratio"] = ours / truth_neighbours if truth_neighbours else np.nan
         entry[name] = {**scalars, "mse": metrics["mse"].tolist()}
     return entry
