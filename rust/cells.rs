@@ -224,38 +224,54 @@ impl<const D: usize> Grid<D> {
                 .zip(self.cursor.par_chunks_mut(n_cells))
                 .for_each(histogram);
         }
-        // Histograms to cursors: cell by cell, part by part.
+        // Histograms to cell starts, and the first part's histogram to the cursors.
         self.cell_start.resize(n_cells + 1, 0);
         let mut acc = 0u32;
         self.pairs_in_cells = 0;
         for c in 0..n_cells {
+            let m: u32 = (0..parts).map(|t| self.cursor[t * n_cells + c]).sum();
             self.cell_start[c] = acc;
-            for t in 0..parts {
-                let h = self.cursor[t * n_cells + c];
-                self.cursor[t * n_cells + c] = acc;
-                acc += h;
-            }
-            let m = (acc - self.cell_start[c]) as u64;
-            self.pairs_in_cells += m * m;
+            self.cursor[c] = acc;
+            acc += m;
+            self.pairs_in_cells += m as u64 * m as u64;
         }
         self.cell_start[n_cells] = acc;
         self.order.resize(len + CHUNK_SLACK, 0);
         self.sorted.resize(D * len + CHUNK_SLACK, 0.0);
         self.cell_of.resize(len, 0);
-        let (order, sorted, cell_of) = (
+        let (order, sorted, cell_of, cursor) = (
             SharedMut(self.order.as_mut_ptr()),
             SharedMut(self.sorted.as_mut_ptr()),
             SharedMut(self.cell_of.as_mut_ptr()),
+            SharedMut(self.cursor.as_mut_ptr()),
         );
-        let scatter = |(t, (ids, cursor)): (usize, (&[u32], &mut [u32]))| {
-            for (k, &c) in ids.iter().enumerate() {
-                let k = t * chunk + k;
-                let p = cursor[c as usize] as usize;
-                cursor[c as usize] += 1;
-                // SAFETY: the cursors of all parts cover disjoint positions, each written once.
+        // Each part places the particles of its own run of cells, reading all of cell_in:
+        // parts cut by input index would write neighbouring slots of every cell, so nearly
+        // every cache line of the output would pass between threads.
+        let cell_start = &self.cell_start;
+        let first_cell = |t: usize| cell_start.partition_point(|&s| (s as usize) < t * len / parts);
+        let cell_in = &self.cell_in;
+        let scatter = |t: usize| {
+            let (c0, c1) = (
+                first_cell(t),
+                if t + 1 == parts {
+                    n_cells
+                } else {
+                    first_cell(t + 1)
+                },
+            );
+            for (k, &c) in cell_in.iter().enumerate() {
+                let c = c as usize;
+                if c.wrapping_sub(c0) >= c1 - c0 {
+                    continue;
+                }
+                // SAFETY: cursor[c] and the slots cell_start[c]..cell_start[c + 1] belong to
+                // the one part that owns cell c; each slot is written once.
                 unsafe {
+                    let p = *cursor.ptr().add(c) as usize;
+                    *cursor.ptr().add(c) += 1;
                     *order.ptr().add(p) = (start + k) as u32;
-                    *cell_of.ptr().add(p) = c;
+                    *cell_of.ptr().add(p) = c as u32;
                     for d in 0..D {
                         *sorted.ptr().add(d * len + p) = coords[k * D + d];
                     }
@@ -263,13 +279,9 @@ impl<const D: usize> Grid<D> {
             }
         };
         if parts == 1 {
-            scatter((0, (&self.cell_in[..], &mut self.cursor[..])));
+            scatter(0);
         } else {
-            self.cell_in
-                .par_chunks(chunk)
-                .zip(self.cursor.par_chunks_mut(n_cells))
-                .enumerate()
-                .for_each(scatter);
+            (0..parts).into_par_iter().for_each(scatter);
         }
         true
     }

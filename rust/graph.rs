@@ -201,11 +201,14 @@ fn validate_options(dim: usize, opts: &GraphOptions) -> Result<Metric> {
     })
 }
 
+/// Validates and converts one call's input; `coords` is a buffer to reuse (a searcher's
+/// last one), so that repeated calls do not fault in fresh pages for it.
 pub(crate) fn prepare<T: Real>(
     positions: &[T],
     dim: usize,
     n_node: Option<&[i64]>,
     opts: &GraphOptions,
+    mut coords: Vec<f64>,
 ) -> Result<Prepared> {
     if dim != 2 && dim != 3 {
         return Err(Error::Shape(format!(
@@ -226,17 +229,17 @@ pub(crate) fn prepare<T: Real>(
         )));
     }
     let mut metric = validate_options(dim, opts)?;
-    if let Some((i, d)) = first_non_finite(positions, dim) {
+    let bounds = graph_bounds(n, n_node)?;
+    coords.clear();
+    coords.extend(positions.iter().map(|v| v.to_f64()));
+    if largest_magnitude_bits(&coords) >= f64::INFINITY.to_bits() {
+        let (i, d) = first_non_finite(positions, dim).expect("a value is not finite");
         return Err(Error::NonFinite(format!(
             "positions[{i}, {d}] is {}; positions must be finite",
             positions[i * dim + d].to_f64()
         )));
     }
-    let bounds = graph_bounds(n, n_node)?;
-
-    let mut coords: Vec<f64> = positions.iter().map(|v| v.to_f64()).collect();
     let mut wraps = Vec::new();
-    let mut max_abs: f64 = 0.0;
     if metric.any_periodic {
         wraps = vec![0i32; coords.len()];
         for (k, (x, w)) in coords.iter_mut().zip(wraps.iter_mut()).enumerate() {
@@ -246,9 +249,7 @@ pub(crate) fn prepare<T: Real>(
             }
         }
     }
-    for &x in &coords {
-        max_abs = max_abs.max(x.abs());
-    }
+    let max_abs = f64::from_bits(largest_magnitude_bits(&coords));
     // A relative margin for the division in cell indices and an absolute one for coordinates
     // far from the origin, where one ulp of a coordinate is a sizeable part of the radius.
     metric.reach = opts.radius * (1.0 + 1e-9) + 16.0 * max_abs * f64::EPSILON;
@@ -259,6 +260,15 @@ pub(crate) fn prepare<T: Real>(
         metric,
         bounds,
     })
+}
+
+/// The bits of the largest |x|, at least those of infinity when some x is not finite. Without
+/// the sign bit, the bits of doubles order as their magnitudes (NaN above infinity), and an
+/// integer maximum vectorises where a float one with NaN rules does not.
+fn largest_magnitude_bits(xs: &[f64]) -> u64 {
+    xs.iter()
+        .map(|x| x.to_bits() & !(1u64 << 63))
+        .fold(0, u64::max)
 }
 
 /// x folded into [0, L), and how many box lengths were subtracted.
@@ -504,8 +514,8 @@ impl<T> SharedMut<T> {
     }
 }
 
-/// What one task found: its queries' sorted rows back to back (where each starts is in
-/// `Searcher::row_at`, its length in `Searcher::counts`), ready to be copied to their offsets.
+/// What one task found: its queries' sorted rows back to back, ready to be copied to their
+/// offsets.
 #[derive(Default)]
 pub(crate) struct TaskRows {
     /// senders[..used] are this call's rows; the rest is room kept from earlier calls, so
@@ -513,6 +523,10 @@ pub(crate) struct TaskRows {
     /// follow the last row.
     senders: Vec<u32>,
     used: usize,
+    /// (query, row length) in the order of the rows. Kept here, not written to arrays by
+    /// query index: queries come in cell order, so two threads writing such arrays would
+    /// share (and fight over) nearly every cache line.
+    queries: Vec<(u32, u32)>,
     /// dim values per edge, only when shifts were asked for.
     shifts: Vec<i32>,
 }
@@ -525,14 +539,9 @@ const ROW_SLACK: usize = 32;
 /// cell list's compaction, or copied from an unsorted list), sorted there, and recorded.
 pub(crate) struct RowSink<'a> {
     rows: &'a mut TaskRows,
-    task: u32,
     avx2: bool,
     dim: usize,
     want_shifts: bool,
-    /// Per particle (by original index), written once by the task that queries it.
-    counts: SharedMut<u32>,
-    row_task: SharedMut<u32>,
-    row_at: SharedMut<u64>,
     order: Vec<usize>,
     pending: u64,
     total: &'a AtomicU64,
@@ -589,12 +598,7 @@ impl RowSink<'_> {
 
     #[inline(always)]
     fn record(&mut self, i: usize, n: usize) -> bool {
-        // SAFETY: each particle is the query of exactly one task.
-        unsafe {
-            *self.counts.ptr().add(i) = n as u32;
-            *self.row_task.ptr().add(i) = self.task;
-            *self.row_at.ptr().add(i) = self.rows.used as u64;
-        }
+        self.rows.queries.push((i as u32, n as u32));
         self.rows.used += n;
         self.pending += n as u64;
         if self.pending >= CHECK_EVERY {
@@ -675,8 +679,8 @@ impl Searcher {
         opts: &GraphOptions,
         want_shifts: bool,
     ) -> Result<usize> {
-        self.prepared = None;
-        let prepared = prepare(positions, dim, n_node, opts)?;
+        let coords = self.prepared.take().map(|p| p.coords).unwrap_or_default();
+        let prepared = prepare(positions, dim, n_node, opts, coords)?;
         let mut indices = std::mem::take(&mut self.indices);
         let mut rows = std::mem::take(&mut self.rows);
         let mut counts = std::mem::take(&mut self.counts);
@@ -1281,58 +1285,40 @@ impl Collect<'_> {
             self_edges: self.opts.self_edges,
             want_shifts: self.want_shifts,
         };
-        counts.clear();
-        counts.resize(n, 0);
-        // Overwritten in full by the tasks (every particle is some task's query).
-        row_task.resize(n, 0);
-        row_at.resize(n, 0);
         // Keep the buffers of earlier calls: a searcher called every step reuses them.
         rows.resize_with(self.tasks.len().max(rows.len()), TaskRows::default);
-        let (out_counts, out_task, out_at) = (
-            SharedMut(counts.as_mut_ptr()),
-            SharedMut(row_task.as_mut_ptr()),
-            SharedMut(row_at.as_mut_ptr()),
-        );
         let total = AtomicU64::new(0);
         let over = AtomicBool::new(false);
         let max_edges = self.opts.max_edges;
-        let run_task =
-            |(t, (task_rows, &(g, lo, hi))): (usize, (&mut TaskRows, &(usize, usize, usize)))| {
-                task_rows.used = 0;
-                task_rows.shifts.clear();
-                if over.load(Ordering::Relaxed) {
-                    return;
-                }
-                let mut found = Found::default();
-                let mut sink = RowSink {
-                    rows: task_rows,
-                    task: t as u32,
-                    avx2: ctx.avx2,
-                    dim,
-                    want_shifts: self.want_shifts,
-                    counts: out_counts,
-                    row_task: out_task,
-                    row_at: out_at,
-                    order: Vec::new(),
-                    pending: 0,
-                    total: &total,
-                    over: &over,
-                    max_edges,
-                };
-                with_simd(ctx.avx2, || {
-                    self.indices[g].collect_range(lo, hi, &ctx, &mut found, &mut sink)
-                });
-                sink.flush();
+        let run_task = |(task_rows, &(g, lo, hi)): (&mut TaskRows, &(usize, usize, usize))| {
+            task_rows.used = 0;
+            task_rows.queries.clear();
+            task_rows.shifts.clear();
+            if over.load(Ordering::Relaxed) {
+                return;
+            }
+            let mut found = Found::default();
+            let mut sink = RowSink {
+                rows: task_rows,
+                avx2: ctx.avx2,
+                dim,
+                want_shifts: self.want_shifts,
+                order: Vec::new(),
+                pending: 0,
+                total: &total,
+                over: &over,
+                max_edges,
             };
+            with_simd(ctx.avx2, || {
+                self.indices[g].collect_range(lo, hi, &ctx, &mut found, &mut sink)
+            });
+            sink.flush();
+        };
         if n < SERIAL_BELOW {
-            rows.iter_mut()
-                .zip(self.tasks.iter())
-                .enumerate()
-                .for_each(run_task);
+            rows.iter_mut().zip(self.tasks.iter()).for_each(run_task);
         } else {
             rows.par_iter_mut()
                 .zip(self.tasks.par_iter())
-                .enumerate()
                 .for_each(run_task);
         }
         if over.load(Ordering::Relaxed) {
@@ -1340,6 +1326,22 @@ impl Collect<'_> {
                 at_least: total.load(Ordering::Relaxed),
                 max_edges,
             });
+        }
+        // Where each particle's row is, by particle: one thread, so no cache line is shared.
+        counts.clear();
+        counts.resize(n, 0);
+        // Overwritten in full (every particle is some task's query).
+        row_task.resize(n, 0);
+        row_at.resize(n, 0);
+        for (t, task_rows) in rows[..self.tasks.len()].iter().enumerate() {
+            let mut at = 0u64;
+            for &(i, len) in &task_rows.queries {
+                let i = i as usize;
+                counts[i] = len;
+                row_task[i] = t as u32;
+                row_at[i] = at;
+                at += len as u64;
+            }
         }
         offsets.clear();
         offsets.reserve(n + 1);
@@ -1714,7 +1716,7 @@ mod tests {
                         ..GraphOptions::new(0.05)
                     };
                     let exact = naive(&pts, dim, &[0, n], &opts).len() as u64;
-                    let prepared = prepare(&pts, dim, None, &opts).unwrap();
+                    let prepared = prepare(&pts, dim, None, &opts, Vec::new()).unwrap();
                     let mut indices = Vec::new();
                     build_indices(&prepared, method, &mut indices);
                     let sure = indices[0].sure_edges(prepared.metric.r2, self_edges, 0);
