@@ -9,7 +9,14 @@ import pytest
 import torch
 from gns.cli import main
 from gns.config import Config, ModelConfig
-from gns.evaluate import evaluate_rollouts, mean_neighbours, one_step_errors, outside_box
+from gns.data.trajectory import Trajectory
+from gns.evaluate import (
+    evaluate_rollouts,
+    mean_neighbours,
+    one_step_errors,
+    outside_box,
+    rest_test,
+)
 from gns.rollout import Rollout, load_rollout
 from gns.simulator import LearnedSimulator, Scene
 from test_train import make_dataset
@@ -188,9 +195,65 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
     checkpoint = sorted((run / "checkpoints").glob("step_*.pt"))[0]
     args = ["eval", "--run", str(checkpoint), "--data", str(data), "--rollouts", str(out64)]
     assert main([*args, "--checkpoint", "best"]) == 2  # best.pt is for run folders
-    assert main([*args, "--every", "4"]) == 0
+    assert main([*args, "--every", "4", "--rest-steps", "3", "--one-step-windows", "0"]) == 0
+    assert "held still for 3 steps" in capsys.readouterr().out
     beside = json.loads((checkpoint.parent / "eval_test.json").read_text())
     assert beside["rollouts"] == [str(out64 / f"rollout_test_{i}.npz") for i in (0, 1)]
+    rest = beside["rest"]
+    assert rest["steps"] == 3 and len(rest["trajectories"]) == 2
+    assert rest["mean"]["max_displacement"] == max(
+        t["max_displacement"] for t in rest["trajectories"]
+    )
+    assert main([*args, "--rest-steps", "-1"]) == 2
     # Bad input is an error message and exit status 2, not a traceback.
     assert main(["eval", "--run", str(tmp_path / "nowhere"), "--data", str(data)]) == 2
     assert "no rollouts" in capsys.readouterr().err
+
+
+def held_pile(context: bool) -> Trajectory:
+    """A 6 x 6 lattice of spacing 0.01 (neighbours at 0.01 and 0.014 within the radius 0.015,
+    the next at 0.02: no pair near the radius), whose last step moved by 1e-4 and 3e-4; its
+    corner particle is kinematic (type 3)."""
+    lattice = np.stack(np.meshgrid(np.arange(6), np.arange(6)), -1).reshape(-1, 2)
+    last = 0.4 + 0.01 * lattice
+    frames = np.repeat(last[None], 8, axis=0)
+    frames[-2, :] -= (1e-4, 0.0)
+    frames[-2, 5] -= (0.0, 3e-4)
+    types = np.full(len(last), 5)
+    types[0] = 3
+    rng = np.random.default_rng(0)
+    step_context = rng.normal(size=(8, 1)) if context else None
+    return Trajectory(positions=frames, particle_type=types, step_context=step_context)
+
+
+@pytest.mark.parametrize("context", [False, True])
+def test_a_model_of_zero_acceleration_keeps_a_held_pile_exactly(context):
+    pile = held_pile(context)
+    result = rest_test(zero_acceleration_simulator(context), pile, 7)
+    assert result["density_ratio"] == 1.0
+    assert result["max_displacement"] == 0.0 and result["outside_box"] == 0.0
+    # The data's last step, by hand: particle 5 moved by (1e-4, 3e-4).
+    assert result["truth_speed"] == pytest.approx(np.hypot(1e-4, 3e-4), rel=1e-4)
+
+
+def test_a_held_pile_falls_as_semi_implicit_euler_says_and_leaves_the_box():
+    simulator = zero_acceleration_simulator(context=False)
+    g = 4e-4  # per step squared; the fresh normaliser (mean 0, std 1) passes it through
+    with torch.no_grad():
+        simulator.model.decoder[-1].bias.copy_(torch.tensor([0.0, -g]))
+    pile = held_pile(context=False)
+    steps = 40
+    result = rest_test(simulator, pile, steps)
+    # From rest, v_k = -k g and x_K = x_0 - g K (K + 1) / 2 (0.328); the kinematic corner
+    # stays, the rest falls as one: the same packing, the lowest row from 0.4 to 0.072, below
+    # the floor at 0.1. Float32 positions: each step's velocity (a difference of positions)
+    # is off by up to an ulp of 0.4 (3e-8), and 40 steps add up to 40 * 41 / 2 of them.
+    fall = g * steps * (steps + 1) / 2
+    assert result["max_displacement"] == pytest.approx(fall, abs=3e-5)
+    assert result["density_ratio"] == 1.0
+    assert result["outside_box"] == pytest.approx(0.1 - (0.4 - fall), abs=3e-5)
+
+
+def test_rest_test_needs_a_step():
+    with pytest.raises(ValueError, match="at least 1 step, got 0"):
+        rest_test(zero_acceleration_simulator(), held_pile(context=True), 0)

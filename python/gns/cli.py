@@ -83,6 +83,13 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--rollouts", type=Path, help="default: RUN/rollouts/SPLIT")
     ev.add_argument("--one-step-windows", type=int, default=512, help="0: skip one-step MSE")
     ev.add_argument("--every", type=int, default=1, help="OT and MMD on every k-th frame")
+    ev.add_argument(
+        "--rest-steps",
+        type=int,
+        default=0,
+        help="also hold each trajectory's last frame still and roll the model out this many "
+        "steps from it: does a settled pile keep its packing (gns.evaluate.rest_test)? 0: skip",
+    )
     add_checkpoint_option(ev)
     add_runtime_options(ev)
     ev.set_defaults(handler=run_eval)
@@ -289,7 +296,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.data import open_dataset
     from gns.data.atomic import write_json_atomic
     from gns.device import resolve_device
-    from gns.evaluate import evaluate_rollouts, one_step_errors
+    from gns.evaluate import evaluate_rollouts, one_step_errors, rest_test
     from gns.rollout import load_rollout
 
     set_threads(args.threads)
@@ -300,11 +307,13 @@ def run_eval(args: argparse.Namespace) -> int:
     if not files:
         raise ValueError(f"no rollouts in {folder}; run `gns rollout --run {args.run} ...` first")
     rollouts = [load_rollout(f) for f in files]
+    if args.rest_steps < 0:
+        raise ValueError(f"--rest-steps must be 0 (skip) or a step count, got {args.rest_steps}")
     report = evaluate_rollouts(rollouts, distribution_every=args.every)
-    if args.one_step_windows:
+    if args.one_step_windows or args.rest_steps:
         device = resolve_device(args.device)
-        # The one-step figures come from the checkpoint the rollouts were made with, unless a
-        # checkpoint was asked for.
+        # The figures of the model itself come from the checkpoint the rollouts were made
+        # with, unless a checkpoint was asked for.
         made_with = {r.metadata.get("checkpoint") for r in rollouts}
         if args.checkpoint == "auto" and len(made_with) == 1 and None not in made_with:
             checkpoint = Path(str(made_with.pop()))
@@ -313,11 +322,24 @@ def run_eval(args: argparse.Namespace) -> int:
         report["one_step_checkpoint"] = str(checkpoint)
         simulator = load_simulator(checkpoint, device)
         dataset = open_dataset(args.data, args.split)
+    if args.one_step_windows:
         one_step = one_step_errors(
             simulator, list(dataset), max_windows=args.one_step_windows, device=device
         )
         for name, value in one_step.items():
             report["mean"][name]["one_step_mse"] = value
+    if args.rest_steps:
+        rest = [rest_test(simulator, t, args.rest_steps, device=device) for t in dataset]
+        # The worst pile, not the mean one, for how far particles went.
+        worst = ("max_displacement", "outside_box", "truth_speed")
+        report["rest"] = {
+            "steps": args.rest_steps,
+            "trajectories": rest,
+            "mean": {
+                key: float((np.max if key in worst else np.mean)([r[key] for r in rest]))
+                for key in rest[0]
+            },
+        }
     report["split"], report["rollouts"] = args.split, [str(f) for f in files]
     written = run_folder(args.run) / f"eval_{args.split}.json"
     write_json_atomic(written, report)
@@ -333,6 +355,12 @@ def run_eval(args: argparse.Namespace) -> int:
         print(f"{key:<16} {a:>14.4g} {b:>16.4g} {ratio:>8.3g}")
     if "ground_truth" in mean:
         print(f"(the ground truth itself: outside_box {mean['ground_truth']['outside_box']:.4g})")
+    if "rest" in report:
+        figures = ", ".join(f"{k} {v:.4g}" for k, v in report["rest"]["mean"].items())
+        print(
+            f"last frames held still for {args.rest_steps} steps (density_ratio: mean; "
+            f"the others: worst): {figures}"
+        )
     print(f"wrote {written}")
     return 0
 

@@ -6,6 +6,9 @@ to the constant-velocity baseline (every particle keeps its last velocity) on th
                                           and at horizons, OT, MMD), model and baseline, plus how
                                           far any particle left the box and how densely the
                                           last frame is packed against the ground truth
+    rest_test(simulator, trajectory, steps)
+                                          the trajectory's last frame held still and rolled
+                                          out: does the model keep a settled pile in place?
 The metrics themselves are gns.metrics; this module only decides what is compared with what.
 """
 
@@ -17,12 +20,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from gns.data.trajectory import Trajectory
 from gns.data.windows import collate, trajectory_windows, window_keys
 from gns.metrics import DEFAULT_HORIZONS, constant_velocity_rollout, evaluate_rollout
-from gns.rollout import Rollout
+from gns.rollout import Rollout, RolloutDiverged, rollout
 from gns.simulator import LearnedSimulator
 
-__all__ = ["evaluate_rollouts", "mean_neighbours", "one_step_errors", "outside_box"]
+__all__ = ["evaluate_rollouts", "mean_neighbours", "one_step_errors", "outside_box", "rest_test"]
 
 MODELS = ("model", "constant_velocity")
 
@@ -205,3 +209,62 @@ def _evaluate_one(
             scalars["density_ratio"] = ours / truth_neighbours if truth_neighbours else np.nan
         entry[name] = {**scalars, "mse": metrics["mse"].tolist()}
     return entry
+
+
+def rest_test(
+    simulator: LearnedSimulator,
+    trajectory: Trajectory,
+    steps: int,
+    *,
+    device: torch.device | str = "cpu",
+) -> dict[str, float]:
+    """Holds the trajectory's last frame still (C + 1 identical frames, so every input velocity
+    is zero) and rolls the model out `steps` steps from it, with the last frame's step context.
+
+    Sand that the data leaves at rest should stay where it is; a model that loses volume packs
+    it ever closer and sinks it into the floor. Returns, over non-kinematic particles:
+    density_ratio, the mean neighbour count within the connectivity radius after the rollout
+    over that of the held frame (1 when the pile keeps its packing); max_displacement, how far
+    the farthest particle moved (inf if the rollout diverged); outside_box (with bounds); and
+    truth_speed, the largest displacement of the data's own last step, which says how still
+    the held frame really was.
+    """
+    steps = int(steps)
+    if steps < 1:
+        raise ValueError(f"rest_test needs at least 1 step, got {steps}")
+    history = simulator.config.model.velocity_history + 1
+    frames = history + steps
+    held = trajectory.positions[-1]
+    context = trajectory.step_context
+    still = Trajectory(
+        positions=np.repeat(held[None], frames, axis=0),
+        particle_type=trajectory.particle_type,
+        step_context=None if context is None else np.repeat(context[-1:], frames, axis=0),
+        material_property=trajectory.material_property,
+        key=trajectory.key,
+        source=f"{trajectory.source} (last frame held still)",
+    )
+    types = torch.from_numpy(np.array(trajectory.particle_type))
+    free = ~simulator.kinematic_mask(types).numpy()
+    scene = simulator.scene
+    last_step = trajectory.positions[-1, free] - trajectory.positions[-2, free]
+    result = {
+        "truth_speed": float(np.linalg.norm(last_step, axis=-1).max(initial=0.0))
+        if trajectory.num_frames > 1
+        else np.nan
+    }
+    try:
+        final = rollout(simulator, still, num_steps=steps, device=device).predicted_rollout[-1]
+    except RolloutDiverged:
+        result.update(density_ratio=np.inf, max_displacement=np.inf)
+        if scene.bounds is not None:
+            result["outside_box"] = np.inf
+        return result
+    before = mean_neighbours(held[free], scene.radius, scene.bounds, scene.periodic)
+    after = mean_neighbours(final[free], scene.radius, scene.bounds, scene.periodic)
+    moved = np.linalg.norm(final[free].astype(np.float64) - held[free], axis=-1)
+    result["density_ratio"] = after / before if before else np.nan
+    result["max_displacement"] = float(moved.max(initial=0.0))
+    if scene.bounds is not None:
+        result["outside_box"] = outside_box(final[None], scene.bounds)
+    return result
