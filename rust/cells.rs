@@ -35,7 +35,8 @@ pub(crate) struct Grid<const D: usize> {
     order: Vec<u32>,
     /// Coordinates in sorted order, axis-major: sorted[d * len + p].
     sorted: Vec<f64>,
-    /// Scratch for the counting sort: cell id by input order, and per-part cursors.
+    /// Scratch for the counting sort: cell id by input order, and per-part histograms whose
+    /// first n_cells values then become the cursors.
     cell_in: Vec<u32>,
     cursor: Vec<u32>,
 }
@@ -191,9 +192,9 @@ impl<const D: usize> Grid<D> {
         }
         let n_cells = cells as usize;
 
-        // Counting sort by cell, stable: each cell lists its particles by index. A large input
-        // is cut, in index order, into one part per thread with a histogram each, so that the
-        // sort runs on every thread and still places each particle where the serial sort would.
+        // Counting sort by cell, stable: each cell lists its particles by index. On a large
+        // input every thread counts one part of the input (cut in index order), then places
+        // the particles of one run of cells.
         let parts = if len >= PARALLEL_SORT_FROM {
             rayon::current_num_threads().max(1)
         } else {
