@@ -253,14 +253,8 @@ impl<const D: usize> Grid<D> {
         let first_cell = |t: usize| cell_start.partition_point(|&s| (s as usize) < t * len / parts);
         let cell_in = &self.cell_in;
         let scatter = |t: usize| {
-            let (c0, c1) = (
-                first_cell(t),
-                if t + 1 == parts {
-                    n_cells
-                } else {
-                    first_cell(t + 1)
-                },
-            );
+            // first_cell(parts) is past every non-empty cell: only empty ones start at len.
+            let (c0, c1) = (first_cell(t), first_cell(t + 1));
             for (k, &c) in cell_in.iter().enumerate() {
                 let c = c as usize;
                 if c.wrapping_sub(c0) >= c1 - c0 {
