@@ -254,6 +254,13 @@ def test_a_held_pile_falls_as_semi_implicit_euler_says_and_leaves_the_box():
     assert result["outside_box"] == pytest.approx(0.1 - (0.4 - fall), abs=3e-5)
 
 
+def test_a_one_frame_trajectory_has_no_truth_speed_but_is_still_held():
+    pile = held_pile(context=False)
+    single = Trajectory(positions=pile.positions[-1:], particle_type=pile.particle_type)
+    result = rest_test(zero_acceleration_simulator(context=False), single, 3)
+    assert np.isnan(result["truth_speed"]) and result["max_displacement"] == 0.0
+
+
 def test_rest_test_needs_a_step():
     with pytest.raises(ValueError, match="at least 1 step, got 0"):
         rest_test(zero_acceleration_simulator(), held_pile(context=True), 0)

@@ -247,12 +247,10 @@ def rest_test(
     types = torch.from_numpy(np.array(trajectory.particle_type))
     free = ~simulator.kinematic_mask(types).numpy()
     scene = simulator.scene
-    last_step = trajectory.positions[-1, free] - trajectory.positions[-2, free]
-    result = {
-        "truth_speed": float(np.linalg.norm(last_step, axis=-1).max(initial=0.0))
-        if trajectory.num_frames > 1
-        else np.nan
-    }
+    result = {"truth_speed": np.nan}  # a one-frame trajectory has no last step
+    if trajectory.num_frames > 1:
+        last_step = trajectory.positions[-1, free] - trajectory.positions[-2, free]
+        result["truth_speed"] = float(np.linalg.norm(last_step, axis=-1).max(initial=0.0))
     try:
         final = rollout(simulator, still, num_steps=steps, device=device).predicted_rollout[-1]
     except RolloutDiverged:
