@@ -299,6 +299,8 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.evaluate import evaluate_rollouts, one_step_errors, rest_test
     from gns.rollout import load_rollout
 
+    if args.rest_steps < 0:
+        raise ValueError(f"--rest-steps must be 0 (skip) or a step count, got {args.rest_steps}")
     set_threads(args.threads)
     folder = args.rollouts or run_folder(args.run) / "rollouts" / args.split
     files = sorted(
@@ -307,8 +309,6 @@ def run_eval(args: argparse.Namespace) -> int:
     if not files:
         raise ValueError(f"no rollouts in {folder}; run `gns rollout --run {args.run} ...` first")
     rollouts = [load_rollout(f) for f in files]
-    if args.rest_steps < 0:
-        raise ValueError(f"--rest-steps must be 0 (skip) or a step count, got {args.rest_steps}")
     report = evaluate_rollouts(rollouts, distribution_every=args.every)
     if args.one_step_windows or args.rest_steps:
         device = resolve_device(args.device)
