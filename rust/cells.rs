@@ -2,7 +2,9 @@
 //! from the graph's actual bounding box, with positions copied in cell order (structure of
 //! arrays) so that each query scans a few contiguous runs instead of 9 or 27 scattered cells.
 
-use crate::graph::{accept_at, clump_edges, tight, Ctx, Found, Prepared, RowSink, SharedMut};
+use crate::graph::{
+    accept_at, clump_edges, has_avx2, tight, with_simd, Ctx, Found, Prepared, RowSink, SharedMut,
+};
 use rayon::prelude::*;
 
 /// The grid declines (and the caller uses the k-d tree) when it would need more cells than
@@ -29,14 +31,14 @@ pub(crate) struct Grid<const D: usize> {
     /// The sum over cells of their particle count squared: no more edges can come from
     /// within cells (see [`Grid::sure_edges`]).
     pairs_in_cells: u64,
-    /// Sorted position -> cell id.
-    cell_of: Vec<u32>,
     /// Sorted position -> global particle index.
     order: Vec<u32>,
     /// Coordinates in sorted order, axis-major: sorted[d * len + p].
     sorted: Vec<f64>,
-    /// Scratch for the counting sort: cell id by input order, and per-part histograms whose
-    /// first n_cells values then become the cursors.
+    /// Scratch for the counting sort: cell coordinate of every input value (same layout as
+    /// the input), cell id by input order, and per-part histograms whose first n_cells values
+    /// then become the cursors.
+    axis_cell: Vec<i32>,
     cell_in: Vec<u32>,
     cursor: Vec<u32>,
 }
@@ -51,14 +53,18 @@ impl<const D: usize> Default for Grid<D> {
             periodic: [false; D],
             cell_start: Vec::new(),
             pairs_in_cells: 0,
-            cell_of: Vec::new(),
             order: Vec::new(),
             sorted: Vec::new(),
+            axis_cell: Vec::new(),
             cell_in: Vec::new(),
             cursor: Vec::new(),
         }
     }
 }
+
+/// One part of the counting sort's first pass: its cell coordinates, cell ids, input
+/// coordinates and histogram.
+type SortPart<'a> = (((&'a mut [i32], &'a mut [u32]), &'a [f64]), &'a mut [u32]);
 
 /// Up to three distinct neighbouring cells along one axis (fewer at a wall, or on a periodic
 /// axis of one or two cells where -1 and +1 are the same cell).
@@ -150,14 +156,7 @@ impl<const D: usize> Grid<D> {
         let coords = &prepared.coords[start * D..end * D];
         let len = end - start;
         self.len = len;
-        let mut lo = [f64::INFINITY; D];
-        let mut hi = [f64::NEG_INFINITY; D];
-        for x in coords.chunks_exact(D) {
-            for d in 0..D {
-                lo[d] = lo[d].min(x[d]);
-                hi[d] = hi[d].max(x[d]);
-            }
-        }
+        let (lo, hi) = bounding_box::<D>(coords);
         let mut cells = 1.0f64;
         for d in 0..D {
             self.periodic[d] = metric.periodic[d];
@@ -186,7 +185,10 @@ impl<const D: usize> Grid<D> {
                 self.n[d] as f64
             };
         }
-        let budget = (MAX_CELLS_PER_PARTICLE * len).max(MIN_CELL_BUDGET);
+        // Also below 2^31 cells, so that every cell coordinate and id fits an i32.
+        let budget = (MAX_CELLS_PER_PARTICLE * len)
+            .max(MIN_CELL_BUDGET)
+            .min(i32::MAX as usize);
         if cells > budget as f64 {
             return false;
         }
@@ -203,24 +205,33 @@ impl<const D: usize> Grid<D> {
         let chunk = len.div_ceil(parts).max(1);
         let parts = len.div_ceil(chunk).max(1);
         let (n, lo, inv) = (self.n, self.lo, self.inv_cell);
-        let cell_id = |x: &[f64]| cell_id::<D>(&n, &lo, &inv, x);
         // Arrays that are overwritten in full are resized, not cleared: zeroing them first
         // would be a pass over memory for nothing.
+        self.axis_cell.resize(len * D, 0);
         self.cell_in.resize(len, 0);
         self.cursor.clear();
         self.cursor.resize(parts * n_cells, 0);
-        let histogram = |((ids, xs), hist): ((&mut [u32], &[f64]), &mut [u32])| {
-            for (id, x) in ids.iter_mut().zip(xs.chunks_exact(D)) {
-                let c = cell_id(x);
-                *id = c as u32;
-                hist[c] += 1;
+        let avx2 = has_avx2();
+        let histogram = |(((axes, ids), xs), hist): SortPart| {
+            with_simd(avx2, || axis_cells::<D>(&n, &lo, &inv, xs, axes));
+            for (id, c) in ids.iter_mut().zip(axes.chunks_exact(D)) {
+                let mut cell = 0;
+                for d in 0..D {
+                    cell = cell * n[d] + c[d] as usize;
+                }
+                *id = cell as u32;
+                hist[cell] += 1;
             }
         };
         if parts == 1 {
-            histogram(((&mut self.cell_in[..], coords), &mut self.cursor[..]));
+            histogram((
+                ((&mut self.axis_cell[..], &mut self.cell_in[..]), coords),
+                &mut self.cursor[..],
+            ));
         } else {
-            self.cell_in
-                .par_chunks_mut(chunk)
+            self.axis_cell
+                .par_chunks_mut(chunk * D)
+                .zip(self.cell_in.par_chunks_mut(chunk))
                 .zip(coords.par_chunks(chunk * D))
                 .zip(self.cursor.par_chunks_mut(n_cells))
                 .for_each(histogram);
@@ -239,11 +250,9 @@ impl<const D: usize> Grid<D> {
         self.cell_start[n_cells] = acc;
         self.order.resize(len + CHUNK_SLACK, 0);
         self.sorted.resize(D * len + CHUNK_SLACK, 0.0);
-        self.cell_of.resize(len, 0);
-        let (order, sorted, cell_of, cursor) = (
+        let (order, sorted, cursor) = (
             SharedMut(self.order.as_mut_ptr()),
             SharedMut(self.sorted.as_mut_ptr()),
-            SharedMut(self.cell_of.as_mut_ptr()),
             SharedMut(self.cursor.as_mut_ptr()),
         );
         // Each part places the particles of its own run of cells, reading all of cell_in:
@@ -266,7 +275,15 @@ impl<const D: usize> Grid<D> {
                     let p = *cursor.ptr().add(c) as usize;
                     *cursor.ptr().add(c) += 1;
                     *order.ptr().add(p) = (start + k) as u32;
-                    *cell_of.ptr().add(p) = c as u32;
+                }
+            }
+            // Then the coordinates of this part's sorted positions, in order: one scattered
+            // write per particle above instead of 1 + D, and reads of whole points here.
+            let (p0, p1) = (cell_start[c0] as usize, cell_start[c1] as usize);
+            for p in p0..p1 {
+                // SAFETY: as above, the slots p0..p1 belong to this part.
+                unsafe {
+                    let k = *order.ptr().add(p) as usize - start;
                     for d in 0..D {
                         *sorted.ptr().add(d * len + p) = coords[k * D + d];
                     }
@@ -364,8 +381,15 @@ impl<const D: usize> Grid<D> {
     ) {
         let mut p = lo;
         let mut runs = [(0, 0); 18];
+        // The cell of p: the last one that starts at or before it (empty cells start there too).
+        let mut c = self
+            .cell_start
+            .partition_point(|&s| s as usize <= p)
+            .saturating_sub(1);
         while p < hi {
-            let c = self.cell_of[p] as usize;
+            while self.cell_start[c + 1] as usize <= p {
+                c += 1;
+            }
             let end = (self.cell_start[c + 1] as usize).min(hi);
             let k = self.runs_of_cell(c, &mut runs);
             if !f(p, end, &runs[..k]) {
@@ -741,15 +765,68 @@ unsafe fn copy_chunks<T: Copy>(src: *const T, dst: *mut T, m: usize) {
     }
 }
 
-/// Row-major cell id (last axis fastest) of the point x.
-#[inline]
-fn cell_id<const D: usize>(n: &[usize; D], lo: &[f64; D], inv_cell: &[f64; D], x: &[f64]) -> usize {
-    let mut id = 0usize;
-    for d in 0..D {
-        let c = (((x[d] - lo[d]) * inv_cell[d]) as usize).min(n[d] - 1);
-        id = id * n[d] + c;
+/// The smallest and largest coordinate on each axis of finite points (lo > hi when there are
+/// none). Comparisons rather than f64::min and max, whose NaN rules keep them from vectorising;
+/// 12 lanes hold 6 (2D) or 4 (3D) whole points.
+fn bounding_box<const D: usize>(coords: &[f64]) -> ([f64; D], [f64; D]) {
+    let mut lo = [f64::INFINITY; 12];
+    let mut hi = [f64::NEG_INFINITY; 12];
+    let chunks = coords.chunks_exact(12);
+    let tail = chunks.remainder();
+    for c in chunks {
+        for k in 0..12 {
+            lo[k] = if c[k] < lo[k] { c[k] } else { lo[k] };
+            hi[k] = if c[k] > hi[k] { c[k] } else { hi[k] };
+        }
     }
-    id
+    for (k, &x) in tail.iter().enumerate() {
+        lo[k] = lo[k].min(x);
+        hi[k] = hi[k].max(x);
+    }
+    let (mut lo_d, mut hi_d) = ([f64::INFINITY; D], [f64::NEG_INFINITY; D]);
+    for k in 0..12 {
+        lo_d[k % D] = lo_d[k % D].min(lo[k]);
+        hi_d[k % D] = hi_d[k % D].max(hi[k]);
+    }
+    (lo_d, hi_d)
+}
+
+/// The cell coordinate of every value of coords (axis k % D for value k), clamped to the
+/// grid: 12 lanes at a time, 4 to a vector conversion, where the saturating `as` casts of a
+/// point at a time cost several times more.
+#[inline(always)]
+fn axis_cells<const D: usize>(
+    n: &[usize; D],
+    lo: &[f64; D],
+    inv_cell: &[f64; D],
+    coords: &[f64],
+    out: &mut [i32],
+) {
+    let lane = |k: usize| (lo[k % D], inv_cell[k % D], (n[k % D] - 1) as i32);
+    let cell = |x: f64, (lo, inv, last): (f64, f64, i32)| {
+        let v = (x - lo) * inv;
+        // x >= lo (lo is the least coordinate, or 0 with positions wrapped into the box), so
+        // v >= 0; v is at most about n - 1 < 2^31 (the grid's budget): in range of i32.
+        debug_assert!((0.0..i32::MAX as f64).contains(&v));
+        // SAFETY: v is finite and within the range of i32 (above).
+        unsafe { v.to_int_unchecked::<i32>() }.min(last)
+    };
+    let lanes: [(f64, f64, i32); 12] = std::array::from_fn(lane);
+    let mut outs = out.chunks_exact_mut(12);
+    let mut ins = coords.chunks_exact(12);
+    for (o, c) in (&mut outs).zip(&mut ins) {
+        for k in 0..12 {
+            o[k] = cell(c[k], lanes[k]);
+        }
+    }
+    for (k, (o, &x)) in outs
+        .into_remainder()
+        .iter_mut()
+        .zip(ins.remainder())
+        .enumerate()
+    {
+        *o = cell(x, lanes[k]);
+    }
 }
 
 fn n_is_huge(n: usize) -> bool {
@@ -860,6 +937,38 @@ static PACK: [[u8; 16]; 16] = {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The box and the cell coordinates against the plain per-point formulas, for lengths
+    /// that fill the 12 lanes exactly, partly, or leave a tail.
+    fn box_and_cells_agree_with_plain_loops<const D: usize>() {
+        for n_pts in 0..30 {
+            let pts = crate::graph::tests::random_points(n_pts, D, n_pts as u64 + 7, 3.0);
+            let (lo, hi) = bounding_box::<D>(&pts);
+            for d in 0..D {
+                let axis = pts.iter().skip(d).step_by(D);
+                assert_eq!(lo[d], axis.clone().fold(f64::INFINITY, |a, &x| a.min(x)));
+                assert_eq!(hi[d], axis.fold(f64::NEG_INFINITY, |a, &x| a.max(x)));
+            }
+            if n_pts == 0 {
+                continue;
+            }
+            let inv = [1.0 / 0.37; D];
+            let n: [usize; D] = std::array::from_fn(|d| ((hi[d] - lo[d]) * inv[d]) as usize + 1);
+            let mut out = vec![-1; pts.len()];
+            axis_cells::<D>(&n, &lo, &inv, &pts, &mut out);
+            for (k, &x) in pts.iter().enumerate() {
+                let d = k % D;
+                let want = (((x - lo[d]) * inv[d]).floor() as i32).min(n[d] as i32 - 1);
+                assert_eq!(out[k], want, "{n_pts} points, value {k}");
+            }
+        }
+    }
+
+    #[test]
+    fn bounding_box_and_axis_cells_agree_with_plain_loops() {
+        box_and_cells_agree_with_plain_loops::<2>();
+        box_and_cells_agree_with_plain_loops::<3>();
+    }
 
     #[test]
     fn simd_and_portable_compaction_agree() {

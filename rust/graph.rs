@@ -232,7 +232,8 @@ pub(crate) fn prepare<T: Real>(
     let bounds = graph_bounds(n, n_node)?;
     coords.clear();
     coords.extend(positions.iter().map(|v| v.to_f64()));
-    if largest_magnitude_bits(&coords) >= f64::INFINITY.to_bits() {
+    let mut largest = largest_magnitude(&coords);
+    if !largest.is_finite() {
         let (i, d) = first_non_finite(positions, dim).expect("a value is not finite");
         return Err(Error::NonFinite(format!(
             "positions[{i}, {d}] is {}; positions must be finite",
@@ -249,7 +250,10 @@ pub(crate) fn prepare<T: Real>(
             }
         }
     }
-    let max_abs = f64::from_bits(largest_magnitude_bits(&coords));
+    if metric.any_periodic {
+        largest = largest_magnitude(&coords);
+    }
+    let max_abs = largest;
     // A relative margin for the division in cell indices and an absolute one for coordinates
     // far from the origin, where one ulp of a coordinate is a sizeable part of the radius.
     metric.reach = opts.radius * (1.0 + 1e-9) + 16.0 * max_abs * f64::EPSILON;
@@ -262,13 +266,28 @@ pub(crate) fn prepare<T: Real>(
     })
 }
 
-/// The bits of the largest |x|, at least those of infinity when some x is not finite. Without
-/// the sign bit, the bits of doubles order as their magnitudes (NaN above infinity), and an
-/// integer maximum vectorises where a float one with NaN rules does not.
-fn largest_magnitude_bits(xs: &[f64]) -> u64 {
-    xs.iter()
-        .map(|x| x.to_bits() & !(1u64 << 63))
-        .fold(0, u64::max)
+/// The largest |x|, or NaN when some x is not finite. Comparisons in 8 lanes rather than
+/// f64::max, whose NaN rules keep it from vectorising; x * 0 is 0 exactly for finite x.
+fn largest_magnitude(xs: &[f64]) -> f64 {
+    with_simd(has_avx2(), || {
+        let (mut top, mut bad) = ([0.0f64; 8], [0.0f64; 8]);
+        let chunks = xs.chunks_exact(8);
+        let tail = chunks.remainder();
+        for c in chunks {
+            for k in 0..8 {
+                let a = c[k].abs();
+                top[k] = if a > top[k] { a } else { top[k] };
+                bad[k] += c[k] * 0.0;
+            }
+        }
+        for (k, &x) in tail.iter().enumerate() {
+            top[k] = top[k].max(x.abs());
+            bad[k] += x * 0.0;
+        }
+        let largest = top.into_iter().fold(0.0, f64::max);
+        // bad is 0 in every lane, or NaN in one.
+        largest + bad.into_iter().sum::<f64>()
+    })
 }
 
 /// x folded into [0, L), and how many box lengths were subtracted.
@@ -626,11 +645,8 @@ pub struct Searcher {
     indices: Vec<GraphIndex>,
     tasks: Vec<(usize, usize, usize)>,
     rows: Vec<TaskRows>,
-    /// Neighbour count per particle, by original index.
-    counts: Vec<u32>,
-    /// Where each particle's row is: task and offset in that task's senders.
-    row_task: Vec<u32>,
-    row_at: Vec<u64>,
+    /// Where each particle's row is, by original index.
+    row_of: Vec<RowAt>,
     /// Row offsets by original index (len N + 1): receiver i owns offsets[i]..offsets[i + 1].
     offsets: Vec<u64>,
     want_shifts: bool,
@@ -683,9 +699,7 @@ impl Searcher {
         let prepared = prepare(positions, dim, n_node, opts, coords)?;
         let mut indices = std::mem::take(&mut self.indices);
         let mut rows = std::mem::take(&mut self.rows);
-        let mut counts = std::mem::take(&mut self.counts);
-        let mut row_task = std::mem::take(&mut self.row_task);
-        let mut row_at = std::mem::take(&mut self.row_at);
+        let mut row_of = std::mem::take(&mut self.row_of);
         let mut offsets = std::mem::take(&mut self.offsets);
         let n = prepared.coords.len() / prepared.dim;
         let result = self.install(n, || {
@@ -709,20 +723,12 @@ impl Searcher {
                 opts,
                 want_shifts,
             }
-            .run(
-                &mut rows,
-                &mut counts,
-                &mut row_task,
-                &mut row_at,
-                &mut offsets,
-            );
+            .run(&mut rows, &mut row_of, &mut offsets);
             found.map(|total| (total, tasks))
         });
         self.indices = indices;
         self.rows = rows;
-        self.counts = counts;
-        self.row_task = row_task;
-        self.row_at = row_at;
+        self.row_of = row_of;
         self.offsets = offsets;
         let (total, tasks) = match result {
             Ok(ok) => ok,
@@ -773,8 +779,7 @@ impl Searcher {
         let rows = &self.rows[..self.tasks.len()];
         let place = RowPlace {
             rows,
-            row_task: &self.row_task,
-            row_at: &self.row_at,
+            row_of: &self.row_of,
             offsets: &self.offsets,
             dim,
         };
@@ -829,11 +834,18 @@ impl Searcher {
 /// Receivers per parallel part of [`Searcher::fill`].
 const FILL_CHUNK: usize = TASK * 8;
 
+/// Where one particle's row is: which task found it, and where in that task's senders.
+#[derive(Clone, Copy, Default)]
+struct RowAt {
+    at: u64,
+    task: u32,
+    len: u32,
+}
+
 /// Where the rows of the last count are, for [`Searcher::fill`].
 struct RowPlace<'a> {
     rows: &'a [TaskRows],
-    row_task: &'a [u32],
-    row_at: &'a [u64],
+    row_of: &'a [RowAt],
     offsets: &'a [u64],
     dim: usize,
 }
@@ -853,8 +865,9 @@ impl RowPlace<'_> {
         for i in i0..i1 {
             let o = self.offsets[i] as usize;
             let len = self.offsets[i + 1] as usize - o;
-            let rows = &self.rows[self.row_task[i] as usize];
-            let at = self.row_at[i] as usize;
+            let row = self.row_of[i];
+            let rows = &self.rows[row.task as usize];
+            let at = row.at as usize;
             let src = rows.senders.as_ptr().add(at);
             let (ds, dr) = (out_s.ptr().add(o), out_r.ptr().add(o));
             // Whole chunks, up to 15 values past the row, where that stays inside this part:
@@ -911,7 +924,7 @@ unsafe fn write_row_avx2(src: *const u32, ds: *mut i64, dr: *mut i64, i: i64, le
     }
 }
 
-fn has_avx2() -> bool {
+pub(crate) fn has_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx2")
@@ -925,7 +938,7 @@ fn has_avx2() -> bool {
 /// Runs `f` compiled for AVX2 when the CPU has it, so the loops inlined into it (distance
 /// tests, the rank sort) vectorise 4 wide. Same arithmetic either way: no FMA contraction.
 #[inline(always)]
-fn with_simd<R>(avx2: bool, f: impl FnOnce() -> R) -> R {
+pub(crate) fn with_simd<R>(avx2: bool, f: impl FnOnce() -> R) -> R {
     #[cfg(target_arch = "x86_64")]
     if avx2 {
         #[target_feature(enable = "avx2")]
@@ -1269,9 +1282,7 @@ impl Collect<'_> {
     fn run(
         &self,
         rows: &mut Vec<TaskRows>,
-        counts: &mut Vec<u32>,
-        row_task: &mut Vec<u32>,
-        row_at: &mut Vec<u64>,
+        row_of: &mut Vec<RowAt>,
         offsets: &mut Vec<u64>,
     ) -> Result<usize> {
         let prepared = self.prepared;
@@ -1328,18 +1339,15 @@ impl Collect<'_> {
             });
         }
         // Where each particle's row is, by particle: one thread, so no cache line is shared.
-        counts.clear();
-        counts.resize(n, 0);
-        // Overwritten in full (every particle is some task's query).
-        row_task.resize(n, 0);
-        row_at.resize(n, 0);
-        for (t, task_rows) in rows[..self.tasks.len()].iter().enumerate() {
+        row_of.resize(n, RowAt::default()); // overwritten in full: every particle is a query
+        for (t, task) in rows[..self.tasks.len()].iter().enumerate() {
             let mut at = 0u64;
-            for &(i, len) in &task_rows.queries {
-                let i = i as usize;
-                counts[i] = len;
-                row_task[i] = t as u32;
-                row_at[i] = at;
+            for &(i, len) in &task.queries {
+                row_of[i as usize] = RowAt {
+                    at,
+                    task: t as u32,
+                    len,
+                };
                 at += len as u64;
             }
         }
@@ -1347,8 +1355,8 @@ impl Collect<'_> {
         offsets.reserve(n + 1);
         let mut acc = 0u64;
         offsets.push(0);
-        for &c in counts.iter() {
-            acc += c as u64;
+        for row in row_of.iter() {
+            acc += row.len as u64;
             offsets.push(acc);
         }
         Ok(acc as usize)
@@ -1367,7 +1375,7 @@ pub fn radius_graph<T: Real>(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// Deterministic points (xorshift64*), so the tests need no dependency.
@@ -1458,9 +1466,26 @@ mod tests {
     }
 
     #[test]
+    fn largest_magnitude_is_the_largest_absolute_value_or_nan() {
+        // Every length up to a few chunks of 8 lanes, the extreme in every position.
+        for len in 1..30 {
+            for at in 0..len {
+                let mut xs = random_points(len, 1, len as u64, 2.0);
+                xs[at] = -3.5;
+                assert_eq!(largest_magnitude(&xs), 3.5, "len {len}, at {at}");
+                for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+                    xs[at] = bad;
+                    assert!(largest_magnitude(&xs).is_nan(), "len {len}, at {at}");
+                }
+            }
+        }
+        assert_eq!(largest_magnitude(&[]), 0.0);
+    }
+
+    #[test]
     fn rank_sort_and_comparison_sort_agree() {
         let row: Vec<u32> = (0..47u32)
-            .map(|k| (k * 2_654_435_761u32) ^ 0x8000_0003)
+            .map(|k| k.wrapping_mul(2_654_435_761) ^ 0x8000_0003)
             .collect();
         for len in [0, 1, 7, 8, 9, 31, 47] {
             let mut want = row[..len].to_vec();
