@@ -150,8 +150,15 @@ impl<const D: usize> Grid<D> {
         sure
     }
 
-    /// Indexes particles start..end; false when the grid would be far too sparse.
-    pub fn rebuild(&mut self, prepared: &Prepared, start: usize, end: usize) -> bool {
+    /// Indexes particles start..end (the counting sort on every thread when `parallel` and
+    /// large); false when the grid would be far too sparse.
+    pub fn rebuild(
+        &mut self,
+        prepared: &Prepared,
+        start: usize,
+        end: usize,
+        parallel: bool,
+    ) -> bool {
         let metric = &prepared.metric;
         let coords = &prepared.coords[start * D..end * D];
         let len = end - start;
@@ -197,7 +204,7 @@ impl<const D: usize> Grid<D> {
         // Counting sort by cell, stable: each cell lists its particles by index. On a large
         // input every thread counts one part of the input (cut in index order), then places
         // the particles of one run of cells.
-        let parts = if len >= PARALLEL_SORT_FROM {
+        let parts = if parallel && len >= PARALLEL_SORT_FROM {
             rayon::current_num_threads().max(1)
         } else {
             1

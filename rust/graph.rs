@@ -16,8 +16,10 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 /// The default memory guard: 2^28 edges are 4 GiB of int64 output.
 pub const DEFAULT_MAX_EDGES: u64 = 1 << 28;
-/// Below this many particles one thread beats waking a pool.
-const SERIAL_BELOW: usize = 2048;
+/// Below this many particles one thread beats waking a pool. Measured from Python on the
+/// 2-core machine (2D, ~14 neighbours): 2 threads took 0.79x the time of one at 512
+/// particles, 1.13x at 768 and 1.21x at 1100.
+const SERIAL_BELOW: usize = 640;
 /// A periodic box at most 2^20 radii long: positions wrapped into [0, L) are then rounded by
 /// at most 2^-32 radii (one ulp of L), far below any distance the search tells apart.
 const MAX_PERIODIC_RADII: f64 = (1u64 << 20) as f64;
@@ -675,12 +677,22 @@ impl Searcher {
         })
     }
 
-    /// Runs f on this searcher's pool, or right here for fewer than SERIAL_BELOW particles:
-    /// everything is serial then, and handing the call to a pool thread and back costs more
-    /// than the whole search of ~1k particles.
-    fn install<R: Send>(&self, n: usize, f: impl FnOnce() -> R + Send) -> R {
+    /// Whether a call on n particles uses several threads: not below SERIAL_BELOW, and not
+    /// on a pool of one thread, where handing the call to that thread and back would only
+    /// add the hand-over.
+    fn parallel(&self, n: usize) -> bool {
+        let threads = self
+            .pool
+            .as_ref()
+            .map_or_else(rayon::current_num_threads, |p| p.current_num_threads());
+        n >= SERIAL_BELOW && threads > 1
+    }
+
+    /// Runs f on this searcher's pool when the call is parallel, else right here (where f
+    /// must not start parallel work: it would run on the global pool).
+    fn install<R: Send>(&self, parallel: bool, f: impl FnOnce() -> R + Send) -> R {
         match &self.pool {
-            Some(p) if n >= SERIAL_BELOW => p.install(f),
+            Some(p) if parallel => p.install(f),
             _ => f(),
         }
     }
@@ -702,8 +714,9 @@ impl Searcher {
         let mut row_of = std::mem::take(&mut self.row_of);
         let mut offsets = std::mem::take(&mut self.offsets);
         let n = prepared.coords.len() / prepared.dim;
-        let result = self.install(n, || {
-            build_indices(&prepared, opts.method, &mut indices);
+        let parallel = self.parallel(n);
+        let result = self.install(parallel, || {
+            build_indices(&prepared, opts.method, &mut indices, parallel);
             let (r2, max_edges) = (prepared.metric.r2, opts.max_edges);
             let sure: u64 = indices
                 .iter()
@@ -722,6 +735,7 @@ impl Searcher {
                 tasks: &tasks,
                 opts,
                 want_shifts,
+                parallel,
             }
             .run(&mut rows, &mut row_of, &mut offsets);
             found.map(|total| (total, tasks))
@@ -796,8 +810,9 @@ impl Searcher {
             // SAFETY: particles i0..i1 own offsets[i0]..offsets[i1], written by this call only.
             with_simd(avx2, || unsafe { place.write(avx2, i0, i1, out) });
         };
-        self.install(n, || {
-            if n < SERIAL_BELOW {
+        let parallel = self.parallel(n);
+        self.install(parallel, || {
+            if !parallel {
                 (0..n).step_by(FILL_CHUNK).for_each(write);
             } else {
                 (0..n).into_par_iter().step_by(FILL_CHUNK).for_each(write);
@@ -1217,20 +1232,26 @@ fn tasks(indices: &[GraphIndex]) -> Vec<(usize, usize, usize)> {
     t
 }
 
-fn build_indices(prepared: &Prepared, method: Method, indices: &mut Vec<GraphIndex>) {
+fn build_indices(
+    prepared: &Prepared,
+    method: Method,
+    indices: &mut Vec<GraphIndex>,
+    parallel: bool,
+) {
     let n_graphs = prepared.bounds.len() - 1;
     // Old indices keep their buffers where the variant matches (a searcher called every step).
     indices.truncate(n_graphs);
     indices.resize_with(n_graphs, || GraphIndex::Brute { start: 0, end: 0 });
-    let build = |(g, slot): (usize, &mut GraphIndex)| build_one(prepared, method, g, slot);
-    if prepared.coords.len() / prepared.dim < SERIAL_BELOW || n_graphs == 1 {
+    let build =
+        |(g, slot): (usize, &mut GraphIndex)| build_one(prepared, method, g, slot, parallel);
+    if !parallel || n_graphs == 1 {
         indices.iter_mut().enumerate().for_each(build);
     } else {
         indices.par_iter_mut().enumerate().for_each(build);
     }
 }
 
-fn build_one(prepared: &Prepared, method: Method, g: usize, slot: &mut GraphIndex) {
+fn build_one(prepared: &Prepared, method: Method, g: usize, slot: &mut GraphIndex, parallel: bool) {
     let (start, end) = (prepared.bounds[g], prepared.bounds[g + 1]);
     let tree = || match prepared.dim {
         2 => GraphIndex::Tree2(KdTree::build(prepared, start, end)),
@@ -1241,17 +1262,17 @@ fn build_one(prepared: &Prepared, method: Method, g: usize, slot: &mut GraphInde
         Method::KdTree => *slot = tree(),
         Method::Cells => {
             let fits = match (prepared.dim, &mut *slot) {
-                (2, GraphIndex::Cells2(grid)) => grid.rebuild(prepared, start, end),
-                (3, GraphIndex::Cells3(grid)) => grid.rebuild(prepared, start, end),
+                (2, GraphIndex::Cells2(grid)) => grid.rebuild(prepared, start, end, parallel),
+                (3, GraphIndex::Cells3(grid)) => grid.rebuild(prepared, start, end, parallel),
                 (2, _) => {
                     let mut grid = Grid::default();
-                    let fits = grid.rebuild(prepared, start, end);
+                    let fits = grid.rebuild(prepared, start, end, parallel);
                     *slot = GraphIndex::Cells2(grid);
                     fits
                 }
                 _ => {
                     let mut grid = Grid::default();
-                    let fits = grid.rebuild(prepared, start, end);
+                    let fits = grid.rebuild(prepared, start, end, parallel);
                     *slot = GraphIndex::Cells3(grid);
                     fits
                 }
@@ -1274,6 +1295,7 @@ struct Collect<'a> {
     tasks: &'a [(usize, usize, usize)],
     opts: &'a GraphOptions,
     want_shifts: bool,
+    parallel: bool,
 }
 
 const CHECK_EVERY: u64 = 1 << 20;
@@ -1325,7 +1347,7 @@ impl Collect<'_> {
             });
             sink.flush();
         };
-        if n < SERIAL_BELOW {
+        if !self.parallel {
             rows.iter_mut().zip(self.tasks.iter()).for_each(run_task);
         } else {
             rows.par_iter_mut()
@@ -1743,7 +1765,7 @@ pub(crate) mod tests {
                     let exact = naive(&pts, dim, &[0, n], &opts).len() as u64;
                     let prepared = prepare(&pts, dim, None, &opts, Vec::new()).unwrap();
                     let mut indices = Vec::new();
-                    build_indices(&prepared, method, &mut indices);
+                    build_indices(&prepared, method, &mut indices, false);
                     let sure = indices[0].sure_edges(prepared.metric.r2, self_edges, 0);
                     assert!(sure > 0 && sure <= exact, "{method:?}: {sure} vs {exact}");
                     // Below the limit nothing is worked out.

@@ -543,13 +543,15 @@ def test_far_outliers_match_ckdtree(dim, dtype):
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_thread_count_does_not_change_output(dim):
-    rng = np.random.default_rng([dim, 18])
-    n = 24000
+# 1000 particles: parallel since it is past the serial threshold (640), one cell-sort part;
+# 24000: the counting sort split per thread too.
+@pytest.mark.parametrize("n", [1000, 24000])
+def test_thread_count_does_not_change_output(dim, n):
+    rng = np.random.default_rng([dim, 18, n])
     x = clumped(rng, n, dim, np.float64, 0.5)
     radius = unit_radius(n, dim)
     expected = oracle(x, radius)
-    n_node = [7000, 0, 17000]
+    n_node = [n * 7 // 24, 0, n - n * 7 // 24]
     box = [1.0] * dim
     results = {}
     for k in (1, 2, 3):
