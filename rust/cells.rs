@@ -35,10 +35,8 @@ pub(crate) struct Grid<const D: usize> {
     order: Vec<u32>,
     /// Coordinates in sorted order, axis-major: sorted[d * len + p].
     sorted: Vec<f64>,
-    /// Scratch for the counting sort: cell coordinate of every input value (same layout as
-    /// the input), cell id by input order, and per-part histograms whose first n_cells values
-    /// then become the cursors.
-    axis_cell: Vec<i32>,
+    /// Scratch for the counting sort: cell id by input order, and per-part histograms whose
+    /// first n_cells values then become the cursors.
     cell_in: Vec<u32>,
     cursor: Vec<u32>,
 }
@@ -55,16 +53,11 @@ impl<const D: usize> Default for Grid<D> {
             pairs_in_cells: 0,
             order: Vec::new(),
             sorted: Vec::new(),
-            axis_cell: Vec::new(),
             cell_in: Vec::new(),
             cursor: Vec::new(),
         }
     }
 }
-
-/// One part of the counting sort's first pass: its cell coordinates, cell ids, input
-/// coordinates and histogram.
-type SortPart<'a> = (((&'a mut [i32], &'a mut [u32]), &'a [f64]), &'a mut [u32]);
 
 /// Up to three distinct neighbouring cells along one axis (fewer at a wall, or on a periodic
 /// axis of one or two cells where -1 and +1 are the same cell).
@@ -214,31 +207,31 @@ impl<const D: usize> Grid<D> {
         let (n, lo, inv) = (self.n, self.lo, self.inv_cell);
         // Arrays that are overwritten in full are resized, not cleared: zeroing them first
         // would be a pass over memory for nothing.
-        self.axis_cell.resize(len * D, 0);
         self.cell_in.resize(len, 0);
         self.cursor.clear();
         self.cursor.resize(parts * n_cells, 0);
         let avx2 = has_avx2();
-        let histogram = |(((axes, ids), xs), hist): SortPart| {
-            with_simd(avx2, || axis_cells::<D>(&n, &lo, &inv, xs, axes));
-            for (id, c) in ids.iter_mut().zip(axes.chunks_exact(D)) {
-                let mut cell = 0;
-                for d in 0..D {
-                    cell = cell * n[d] + c[d] as usize;
+        let histogram = |((ids, xs), hist): ((&mut [u32], &[f64]), &mut [u32])| {
+            // Cell coordinates a block at a time (a multiple of 2 and 3 values, whole points).
+            let mut axes = [0i32; 768];
+            for (ids, xs) in ids.chunks_mut(axes.len() / D).zip(xs.chunks(axes.len())) {
+                let axes = &mut axes[..xs.len()];
+                with_simd(avx2, || axis_cells::<D>(&n, &lo, &inv, xs, axes));
+                for (id, c) in ids.iter_mut().zip(axes.chunks_exact(D)) {
+                    let mut cell = 0;
+                    for d in 0..D {
+                        cell = cell * n[d] + c[d] as usize;
+                    }
+                    *id = cell as u32;
+                    hist[cell] += 1;
                 }
-                *id = cell as u32;
-                hist[cell] += 1;
             }
         };
         if parts == 1 {
-            histogram((
-                ((&mut self.axis_cell[..], &mut self.cell_in[..]), coords),
-                &mut self.cursor[..],
-            ));
+            histogram(((&mut self.cell_in[..], coords), &mut self.cursor[..]));
         } else {
-            self.axis_cell
-                .par_chunks_mut(chunk * D)
-                .zip(self.cell_in.par_chunks_mut(chunk))
+            self.cell_in
+                .par_chunks_mut(chunk)
                 .zip(coords.par_chunks(chunk * D))
                 .zip(self.cursor.par_chunks_mut(n_cells))
                 .for_each(histogram);
