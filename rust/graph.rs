@@ -234,8 +234,8 @@ pub(crate) fn prepare<T: Real>(
     let bounds = graph_bounds(n, n_node)?;
     coords.clear();
     coords.extend(positions.iter().map(|v| v.to_f64()));
-    let mut largest = largest_magnitude(&coords);
-    if !largest.is_finite() {
+    let mut max_abs = largest_magnitude(&coords);
+    if !max_abs.is_finite() {
         let (i, d) = first_non_finite(positions, dim).expect("a value is not finite");
         return Err(Error::NonFinite(format!(
             "positions[{i}, {d}] is {}; positions must be finite",
@@ -251,11 +251,9 @@ pub(crate) fn prepare<T: Real>(
                 (*x, *w) = wrap(*x, metric.lengths[d], d)?;
             }
         }
+        // Wrapped into the box, the coordinates are smaller.
+        max_abs = largest_magnitude(&coords);
     }
-    if metric.any_periodic {
-        largest = largest_magnitude(&coords);
-    }
-    let max_abs = largest;
     // A relative margin for the division in cell indices and an absolute one for coordinates
     // far from the origin, where one ulp of a coordinate is a sizeable part of the radius.
     metric.reach = opts.radius * (1.0 + 1e-9) + 16.0 * max_abs * f64::EPSILON;
@@ -642,7 +640,9 @@ impl RowSink<'_> {
 /// between calls, so repeated searches of similar size allocate nothing but the output.
 #[derive(Default)]
 pub struct Searcher {
+    /// The searcher's own pool, or None for the global one (or for one thread).
     pool: Option<rayon::ThreadPool>,
+    one_thread: bool,
     prepared: Option<Prepared>,
     indices: Vec<GraphIndex>,
     tasks: Vec<(usize, usize, usize)>,
@@ -655,7 +655,8 @@ pub struct Searcher {
 }
 
 impl Searcher {
-    /// A searcher on the global rayon pool (`num_threads = None`) or on a pool of its own.
+    /// A searcher on the global rayon pool (`num_threads = None`), on a pool of its own, or
+    /// on the caller's thread alone (`Some(1)`).
     pub fn new(num_threads: Option<usize>) -> Result<Self> {
         let pool = match num_threads {
             None => None,
@@ -664,6 +665,8 @@ impl Searcher {
                     "num_threads must be >= 1 (or None for the default pool), got 0".into(),
                 ))
             }
+            // One thread: every call runs on the caller's, so no pool to hand it to.
+            Some(1) => None,
             Some(t) => Some(
                 rayon::ThreadPoolBuilder::new()
                     .num_threads(t)
@@ -673,19 +676,19 @@ impl Searcher {
         };
         Ok(Searcher {
             pool,
+            one_thread: num_threads == Some(1),
             ..Default::default()
         })
     }
 
     /// Whether a call on n particles uses several threads: not below SERIAL_BELOW, and not
-    /// on a pool of one thread, where handing the call to that thread and back would only
-    /// add the hand-over.
+    /// with one thread (or a global pool of one).
     fn parallel(&self, n: usize) -> bool {
         let threads = self
             .pool
             .as_ref()
             .map_or_else(rayon::current_num_threads, |p| p.current_num_threads());
-        n >= SERIAL_BELOW && threads > 1
+        !self.one_thread && n >= SERIAL_BELOW && threads > 1
     }
 
     /// Runs f on this searcher's pool when the call is parallel, else right here (where f
