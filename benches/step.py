@@ -49,7 +49,6 @@ from typing import Any
 import numpy as np
 
 SAND = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
-RADIUS = 0.015
 LABELS = {1100: "WaterDrop size", 10_000: "10k particles"}
 
 
@@ -93,6 +92,7 @@ from gns.model import EncodeProcessDecode, native_bf16  # noqa: E402
 from gns.rollout import TIMING_PARTS, rollout  # noqa: E402
 from gns.simulator import LearnedSimulator, Scene  # noqa: E402
 from gns.train import TrainingStep, batch_tensors  # noqa: E402
+from lattice import lattice  # noqa: E402
 from torch import nn  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
@@ -144,19 +144,8 @@ class Case:
 
 def lattice_case(n: int, history: int) -> Case:
     """n particles on a jittered square lattice with ~13 neighbours within RADIUS."""
-    rng = np.random.default_rng(n)
-    spacing = RADIUS * np.sqrt(np.pi / 13)
-    cols = int(np.ceil(np.sqrt(n)))
-    ij = np.stack([np.arange(n) % cols, np.arange(n) // cols], axis=1)
-    lo = 0.1
-    hi = max(0.9, lo + 2 * RADIUS + cols * spacing)
-    x0 = lo + RADIUS + spacing * (ij + rng.uniform(-0.1, 0.1, (n, 2)))
-    velocity = rng.normal(0.0, 1e-4, (n, 2))
-    frames = np.arange(history + 1)[:, None, None]
-    positions = (x0[None] + frames * velocity[None]).astype(np.float32)
-    scene = Scene(2, RADIUS, (5,), bounds=((lo, hi), (lo, hi)), walls=True)
-    label = LABELS.get(n, f"{n} particles")
-    return Case(label, scene, Trajectory(positions, np.full(n, 5), source="lattice"))
+    scene, trajectory = lattice(n, history + 1)
+    return Case(LABELS.get(n, f"{n} particles"), scene, trajectory)
 
 
 def sand_case(path: Path, config: Config, start: int = 100) -> Case | None:

@@ -16,14 +16,10 @@ def torch_one_thread():
 
 @pytest.fixture(autouse=True)
 def fp32_unless_asked(monkeypatch):
-    """precision="auto" means bf16 on CPUs with AMX/AVX512-BF16 and on CUDA: tests that compare
-    with fp32 oracles would then measure bf16 round-off on some machines and not on others.
-    Here "auto" is always fp32; bf16 is tested where a test asks for it by name."""
-    import gns.model
+    """A rollout with precision "auto" tries bf16 where it is native (AVX512-BF16 or AMX CPUs,
+    CUDA) and keeps it when it measures faster: tests that compare with fp32 oracles would then
+    see bf16 round-off on some machines, at some loads, and not on others. Here rollouts never
+    try it; bf16 is tested where a test asks for it by name (test_runtime.py)."""
+    import gns.rollout
 
-    original = gns.model.resolve_precision
-
-    def fp32_auto(precision, device):
-        return original("fp32" if precision == "auto" else precision, device)
-
-    monkeypatch.setattr(gns.model, "resolve_precision", fp32_auto)
+    monkeypatch.setattr(gns.rollout, "native_bf16", lambda device: False)

@@ -17,7 +17,7 @@ import pytest
 import torch
 from gns.checkpoints import load_checkpoint, load_simulator
 from gns.config import TrainConfig, load_config
-from gns.train import TrainingStep, train
+from gns.train import SPIKES_SHOWN, Progress, SpikeReport, TrainingStep, train
 from test_train import config, make_dataset, parameters, read_csv
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -147,6 +147,29 @@ def test_loss_spikes_are_reported_with_their_batch_and_training_goes_on(
     Faults(monkeypatch, "spike", at=at, first_step=at - 2)
     train(data, tmp_path / "resumed", config(steps, log_every=1), resume=True, progress=False)
     assert read_csv(tmp_path / "resumed/spikes.csv") == rows
+
+
+def test_many_spikes_print_a_few_lines_then_one_summary_with_the_worst(capsys):
+    meter = Progress(100, 0, enabled=False)
+    report = SpikeReport(enabled=True, meter=meter)
+    factors = [12.0, 30.0, 11.0, 50.0, 15.0, 13.0]  # the worst (50x) comes after the shown ones
+    for k, factor in enumerate(factors):
+        report.add(10 + k, factor * 2.0, 2.0, 100, f"{k}:0")
+    report.summarise(Path("run/spikes.csv"))
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert [line.split(":")[0] for line in lines[:SPIKES_SHOWN]] == [
+        f"loss spike at step {10 + k}" for k in range(SPIKES_SHOWN)
+    ]
+    assert "further spikes are counted" in lines[SPIKES_SHOWN - 1]
+    assert len(lines) == SPIKES_SHOWN + 1  # no line for spikes 4-6, then the summary
+    assert lines[-1].startswith(f"{len(factors)} loss spikes this session")
+    assert "the worst at step 13: 100, 50.0 times the median" in lines[-1]
+    assert "run/spikes.csv" in lines[-1]
+    # Ranks other than 0 say nothing.
+    quiet = SpikeReport(enabled=False, meter=meter)
+    quiet.add(1, 100.0, 1.0, 100, "0:0")
+    quiet.summarise(Path("x"))
+    assert capsys.readouterr().err == ""
 
 
 def test_spike_factor_is_zero_or_above_one():

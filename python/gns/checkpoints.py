@@ -62,9 +62,15 @@ def _scene_from_dict(data: dict[str, Any]) -> Scene:
 
 
 def save_checkpoint(path: str | os.PathLike[str], state: dict[str, Any]) -> None:
-    """torch.save `state` to `path` atomically (a crash never leaves a half-written file)."""
+    """torch.save `state` to `path` atomically (a crash never leaves a half-written file),
+    every tensor copied to the CPU: a run trained on a GPU loads on any machine."""
+    from torch.utils._pytree import tree_map
+
+    def on_cpu(value: Any) -> Any:
+        return value.detach().cpu() if isinstance(value, torch.Tensor) else value
+
     with atomic_file(path) as tmp:
-        torch.save(state, tmp)
+        torch.save(tree_map(on_cpu, state), tmp)
 
 
 def _check_archive(path: str | os.PathLike[str]) -> None:

@@ -157,8 +157,10 @@ class ModelConfig:
     implementation: "fast" (split first edge layer, see gns.model.InteractionNetwork) or
         "plain", the readable reference; the same function up to float round-off.
     precision: "bf16" runs the network under bfloat16 autocast (losses, statistics and the
-        integration stay float32); "auto" picks bf16 only where it is native (CUDA with bf16,
-        CPUs with AVX512-BF16 or AMX), "fp32" never.
+        integration stay float32), "fp32" never. "auto" trains in fp32 (the paper's; bf16
+        gradients are not always faster and round more), and in rollouts tries bf16 where it is
+        native (CUDA with bf16, CPUs with AVX512-BF16 or AMX), keeping it only when it runs
+        this model measurably faster and within gns.rollout.BF16_TOLERANCE of fp32.
     torch_compile: torch.compile the fast path (dynamic shapes); opt-in because compiling takes
         tens of seconds, and it falls back to eager with a warning where it cannot compile.
     """

@@ -244,8 +244,7 @@ def rest_test(
         key=trajectory.key,
         source=f"{trajectory.source} (last frame held still)",
     )
-    types = torch.from_numpy(np.array(trajectory.particle_type))
-    free = ~simulator.kinematic_mask(types).numpy()
+    free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
     scene = simulator.scene
     result = {"truth_speed": np.nan}  # a one-frame trajectory has no last step
     if trajectory.num_frames > 1:

@@ -10,7 +10,8 @@ either): "plain", the readable reference (gather, concatenate, MLP, index_add_),
 default, which splits the first layer of each edge MLP so that the sender and receiver parts
 are multiplied once per node instead of once per edge (see InteractionNetwork). `precision`
 "bf16" runs the network under autocast (matmuls in bfloat16, LayerNorm, sums and the output in
-float32); "auto" does so only where bfloat16 matmuls are native.
+float32); "auto" runs fp32 here, and rollouts may switch it to bf16 after measuring (see
+gns.rollout).
 """
 
 from __future__ import annotations
@@ -287,7 +288,7 @@ def _residual(x: Tensor, update: Tensor) -> Tensor:
 def native_bf16(device: torch.device | str) -> bool:
     """Whether `device` multiplies bfloat16 natively: a CUDA GPU with bf16, or a CPU with
     AVX512-BF16 or AMX. Elsewhere (e.g. AVX2-only CPUs) bf16 matmuls are emulated, ~10-20x
-    slower than fp32, so "auto" precision stays fp32 there."""
+    slower than fp32, so rollouts never try bf16 there."""
     device = torch.device(device)
     if device.type == "cuda":
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
@@ -297,9 +298,11 @@ def native_bf16(device: torch.device | str) -> bool:
 
 
 def resolve_precision(precision: Precision, device: torch.device | str) -> Precision:
-    """ "fp32" or "bf16": what precision "auto" (or an explicit choice) means on `device`."""
+    """ "fp32" or "bf16": what the network runs in. "auto" is fp32 (the paper's): bf16 was
+    measured both faster and slower than fp32 depending on the model's size and the CPU
+    (issue 22), so only a rollout that times both for its model switches to it."""
     if precision == "auto":
-        return "bf16" if native_bf16(device) else "fp32"
+        return "fp32"
     if precision not in ("fp32", "bf16"):
         raise ValueError(f"precision must be 'auto', 'fp32' or 'bf16', got {precision!r}")
     return precision

@@ -13,6 +13,13 @@ postprocess, i.e. de-normalisation and the Euler update, plus the kinematic over
 
 A non-finite prediction stops the rollout with `RolloutDiverged`, which carries the finite part;
 NaN never travels on into later steps, metrics or files.
+
+How the steps run is measured, not assumed: torch's CPU thread count is chosen by timing the
+steps (gns.threads; fixed when the user fixed it), and a model of precision "auto" runs in bf16
+only where bf16 is native and `rollout_precision` timed it faster than fp32 for this model
+within BF16_TOLERANCE. Both are recorded in the rollout's metadata ("torch_threads",
+"precision"). Every tensor of a step stays on the simulator's device; only the most recent
+positions go to the host (the Rust core's radius graph and distances) and their results back.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import operator
 import os
 import pickle
 import time
+import weakref
 import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -33,9 +41,12 @@ import torch
 from torch import Tensor
 
 import gns
+from gns.config import Precision
 from gns.data.atomic import atomic_file
 from gns.data.trajectory import Trajectory
+from gns.model import native_bf16, resolve_precision
 from gns.simulator import LearnedSimulator
+from gns.threads import StepTuner, thread_tuner, threads_fixed
 
 __all__ = [
     "SCHEMA",
@@ -49,6 +60,8 @@ __all__ = [
 ]
 
 TIMING_PARTS = ("graph", "features", "model", "integration")
+# The network's arguments among LearnedSimulator.features' outputs, in order.
+FEATURE_KEYS = ("node_features", "edge_features", "senders", "receivers", "global_features")
 SCHEMA = "gns.rollout/1"
 
 # npz keys of the schema; timings and array metrics get a prefix per entry.
@@ -171,6 +184,75 @@ def _listed(indices: np.ndarray, limit: int = 10) -> str:
 
 
 # ---------------------------------------------------------------------------------- rollout
+
+# bf16 is used for a rollout only if its normalised acceleration (units of the data's
+# acceleration std) differs from fp32's by at most this RMS over particles and axes on the
+# first step: a tenth of the std, well below the one-step error of the trained models here.
+BF16_TOLERANCE = 0.1
+# ... and if it ran the network at least this much faster (timed forwards of the first step).
+BF16_SPEEDUP = 1.1
+
+
+def bf16_difference(model: torch.nn.Module, features: Mapping[str, Any]) -> float:
+    """RMS over particles and axes of the network's bf16 output minus its fp32 output on
+    `features` (LearnedSimulator.features' dict), in normalised acceleration units."""
+    outputs = [_forward(model, features, p) for p in ("fp32", "bf16")]
+    return float((outputs[1] - outputs[0]).square().mean().sqrt())
+
+
+def _forward(model: torch.nn.Module, features: Mapping[str, Any], precision: str) -> Tensor:
+    args = [features[k] for k in FEATURE_KEYS]
+    saved, model.precision = model.precision, precision
+    try:
+        return model(*args)
+    finally:
+        model.precision = saved
+
+
+def rollout_precision(
+    model: torch.nn.Module,
+    features: Mapping[str, Any],
+    device: torch.device,
+    clock: Callable[[], float] = time.perf_counter,
+    repeats: int = 3,
+) -> Precision:
+    """What a rollout of `model` runs in: its precision when it is "fp32" or "bf16"; for
+    "auto", bf16 only on a device where it is native, within BF16_TOLERANCE of fp32 on these
+    features, and at least BF16_SPEEDUP times faster in `repeats` timed forwards of each
+    (alternating, medians compared; the tolerance check's forwards warm both up); else fp32.
+    Decided once, before the first step, so that one rollout never mixes precisions."""
+    if model.precision != "auto":
+        return resolve_precision(model.precision, device)
+    if not native_bf16(device) or bf16_difference(model, features) > BF16_TOLERANCE:
+        return "fp32"
+    times: dict[str, list[float]] = {"fp32": [], "bf16": []}
+    for _ in range(repeats):
+        for precision, seconds in times.items():
+            start = clock()
+            _forward(model, features, precision)
+            seconds.append(clock() - start)
+    fp32, bf16 = (float(np.median(t)) for t in times.values())
+    return "bf16" if fp32 >= BF16_SPEEDUP * bf16 else "fp32"
+
+
+# Per simulator, kept between its rollouts (each trajectory of a split would otherwise measure
+# again): the precision chosen, the thread tuner, and the facts they were chosen under.
+_RUNTIME: weakref.WeakKeyDictionary[
+    LearnedSimulator, tuple[tuple[Any, ...], Precision, StepTuner[int]]
+] = weakref.WeakKeyDictionary()
+
+
+def _runtime(
+    simulator: LearnedSimulator, device: torch.device, features: Mapping[str, Any], clock: Any
+) -> tuple[Precision, StepTuner[int]]:
+    signature = (device, simulator.model.precision, threads_fixed())
+    cached = _RUNTIME.get(simulator)
+    if cached is None or cached[0] != signature:
+        precision = rollout_precision(simulator.model, features, device, clock)
+        tuner = thread_tuner()
+        cached = (signature, precision, tuner)
+        _RUNTIME[simulator] = cached
+    return cached[1], cached[2]
 
 
 def _clock(device: torch.device) -> Callable[[], float]:
@@ -301,10 +383,7 @@ def rollout(
     c = simulator.config.model.velocity_history
     history = c + 1
     particle_type = trajectory.particle_type
-    # A copy: trajectories may hold read-only arrays (memory-mapped or shared), which torch
-    # refuses to wrap without a warning.
-    types = torch.from_numpy(np.array(particle_type))
-    kinematic = simulator.kinematic_mask(types).numpy()
+    kinematic = simulator.scene.kinematic_mask(particle_type)
     num_kinematic = int(kinematic.sum())
     num_steps = _check_num_steps(num_steps, trajectory, history, num_kinematic)
     if trajectory.dim != simulator.scene.dim:
@@ -324,7 +403,9 @@ def rollout(
     positions = trajectory.positions  # (T, N, D) float32, time-major
     # The model reads particle-major sequences (N, C + 1, D), most recent last.
     window = torch.from_numpy(positions[:history].transpose(1, 0, 2).copy()).to(device, dtype)
-    types = types.to(device)
+    # A copy: trajectories may hold read-only arrays (memory-mapped or shared), which torch
+    # refuses to wrap without a warning.
+    types = torch.from_numpy(np.array(particle_type)).to(device)
     kinematic_index = torch.from_numpy(np.flatnonzero(kinematic)).to(device)
     kinematic_truth = torch.from_numpy(positions[:, kinematic]).to(device, dtype)  # (T, K, D)
     context = None
@@ -342,6 +423,8 @@ def rollout(
     now = _clock(device)
     run_metadata = _run_metadata(simulator, trajectory, num_steps, num_kinematic, device, dtype)
     run_metadata.update(metadata or {})
+    tuner: StepTuner[int] | None = None
+    precision: Precision = "fp32"
 
     def result(steps: int) -> Rollout:
         truth = None
@@ -350,15 +433,23 @@ def rollout(
         step_context = None
         if trajectory.step_context is not None:
             step_context = trajectory.step_context[: c + steps].copy()
+        ran: dict[str, Any] = {"num_steps": steps}
+        if tuner is not None:  # what the steps ran with (in the end: see gns.threads)
+            ran.update(precision=precision, torch_threads=tuner.chosen)
         return Rollout(
             initial_positions=positions[:history].copy(),
             predicted_rollout=predicted[:steps].cpu().numpy(),
             ground_truth_rollout=truth,
             particle_type=particle_type.copy(),
             step_context=step_context,
-            metadata={**run_metadata, "num_steps": steps},
+            metadata={**run_metadata, **ran},
             timings={part: seconds[i, :steps].copy() for i, part in enumerate(TIMING_PARTS)},
         )
+
+    marks: dict[str, float] = {}  # when each part of a step ended (features marks "graph")
+
+    def mark(part: str) -> None:
+        marks[part] = now()
 
     was_training = simulator.training
     simulator.eval()
@@ -368,25 +459,23 @@ def rollout(
                 frame = step + c  # the last input frame
                 step_context = None if context is None else context[frame]
                 t0 = now()
-                graph = simulator.graph(window[:, -1])
-                t1 = now()
                 f = simulator.features(
-                    window, types, context=step_context, material_property=material, graph=graph
+                    window, types, context=step_context, material_property=material, mark=mark
                 )
+                t1 = now()
+                if tuner is None:
+                    precision, tuner = _runtime(simulator, device, f, now)
+                    tuner.__enter__()
+                tuner.begin()
                 t2 = now()
-                normalized_acceleration = simulator.model(
-                    f["node_features"],
-                    f["edge_features"],
-                    f["senders"],
-                    f["receivers"],
-                    f["global_features"],
-                )
+                normalized_acceleration = _forward(simulator.model, f, precision)
                 t3 = now()
                 next_position = simulator.decoder_postprocess(normalized_acceleration, window)
                 if num_kinematic:
                     next_position[kinematic_index] = kinematic_truth[frame + 1]
                 t4 = now()
-                seconds[:, step] = (t1 - t0, t2 - t1, t3 - t2, t4 - t3)
+                seconds[:, step] = (marks["graph"] - t0, t1 - marks["graph"], t3 - t2, t4 - t3)
+                tuner.end(seconds[:, step].sum())  # the step without the tuner's own work
 
                 bad = ~torch.isfinite(next_position).all(dim=-1)
                 nonfinite = int(bad.sum())
@@ -407,8 +496,8 @@ def rollout(
                     partial.metadata["diverged_at_step"] = step
                     raise RolloutDiverged(
                         f"rollout diverged at step {step} (predicting frame {frame + 1}): "
-                        f"{what} (particles {_listed(particles)}); the {step} steps before "
-                        "it are in .rollout",
+                        f"{what} (particles {_listed(particles)}); the {step} finite steps "
+                        "before it are kept",
                         partial,
                         step,
                         nonfinite,
@@ -417,6 +506,8 @@ def rollout(
                 predicted[step] = next_position
                 window = torch.cat([window[:, 1:], next_position[:, None]], dim=1)
     finally:
+        if tuner is not None:
+            tuner.__exit__()
         simulator.train(was_training)
     return result(num_steps)
 

@@ -17,7 +17,7 @@ input width follows from the scene; nothing here knows a particular dataset.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -104,6 +104,11 @@ class Scene:
         if not self.walls:
             return ()
         return tuple(a for a in range(self.dim) if not self.periodic[a])
+
+    def kinematic_mask(self, particle_type: np.ndarray) -> np.ndarray:
+        """(N,) bool on the host: particles of a kinematic type (LearnedSimulator's
+        kinematic_mask is the same on the model's device)."""
+        return np.isin(np.asarray(particle_type), self.kinematic_particle_types)
 
     @classmethod
     def from_metadata(
@@ -205,6 +210,7 @@ class LearnedSimulator(nn.Module):
     kinematic_type_ids: Tensor
     gravity: Tensor
     bounds: Tensor
+    periodic_axes: Tensor
 
     def __init__(
         self,
@@ -236,6 +242,8 @@ class LearnedSimulator(nn.Module):
         else:
             bounds = torch.zeros(dim, 2, dtype=torch.float64)
         self.register_buffer("bounds", bounds)
+        # Not saved: it follows from the scene, and checkpoints predate it.
+        self.register_buffer("periodic_axes", torch.tensor(scene.periodic), persistent=False)
 
         self.particle_type_embedding: nn.Embedding | None = None
         embedding_size = 0
@@ -322,7 +330,8 @@ class LearnedSimulator(nn.Module):
     # ------------------------------------------------------------------ particles and geometry
 
     def kinematic_mask(self, particle_type: Tensor) -> Tensor:
-        """(N,) bool: particles of a kinematic type (no noise, no loss, ground truth in rollout)."""
+        """(N,) bool: particles of a kinematic type (no noise, no loss, ground truth in rollout).
+        particle_type must be on the simulator's device (Scene.kinematic_mask takes numpy)."""
         return torch.isin(particle_type.to(torch.int64), self.kinematic_type_ids)
 
     def _type_index(self, particle_type: Tensor) -> Tensor:
@@ -339,23 +348,20 @@ class LearnedSimulator(nn.Module):
     def _box(self, dtype: torch.dtype) -> Tensor:
         return (self.bounds[:, 1] - self.bounds[:, 0]).to(dtype)
 
-    def _periodic(self, device: torch.device) -> Tensor:
-        return torch.tensor(self.scene.periodic, device=device)
-
     def displacement(self, a: Tensor, b: Tensor) -> Tensor:
         """a - b, the minimum image on periodic axes (a particle crossing the box is not fast)."""
         d = a - b
         if not any(self.scene.periodic):
             return d
         box = self._box(d.dtype)
-        return torch.where(self._periodic(d.device), d - box * torch.round(d / box), d)
+        return torch.where(self.periodic_axes, d - box * torch.round(d / box), d)
 
     def wrap(self, x: Tensor) -> Tensor:
         """Positions folded back into the box on periodic axes."""
         if not any(self.scene.periodic):
             return x
         lo, box = self.bounds[:, 0].to(x.dtype), self._box(x.dtype)
-        return torch.where(self._periodic(x.device), lo + torch.remainder(x - lo, box), x)
+        return torch.where(self.periodic_axes, lo + torch.remainder(x - lo, box), x)
 
     def velocity_sequence(self, position_sequence: Tensor) -> Tensor:
         """(N, C, D) finite differences of (N, C + 1, D) positions, per frame."""
@@ -365,22 +371,36 @@ class LearnedSimulator(nn.Module):
         self, most_recent_position: Tensor, n_node: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Radius graph of the most recent positions (Rust core): senders, receivers (E,) and
-        the displacements x[senders] - x[receivers] (E, D), minimum image on periodic axes."""
+        the displacements x[senders] - x[receivers] (E, D), minimum image on periodic axes;
+        all on the positions' device."""
+        x = most_recent_position.detach()
+        return self._graph(x.cpu(), x, n_node)
+
+    def _graph(
+        self, host: Tensor, most_recent_position: Tensor, n_node: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """graph() from `host`, the positions already copied to the CPU (the Rust core reads
+        host memory): the edges go back to the positions' device once, and the displacements
+        are taken there from the positions themselves."""
         x = most_recent_position.detach()
         periodic = any(self.scene.periodic)
-        kwargs: dict[str, Any] = dict(n_node=n_node, self_edges=self.config.model.self_edges)
+        kwargs: dict[str, Any] = dict(self_edges=self.config.model.self_edges)
+        if n_node is not None:
+            kwargs["n_node"] = n_node.cpu()
         if periodic:
-            lo = self.bounds[:, 0].to(x.dtype)
-            kwargs.update(box=self._box(torch.float64).tolist(), periodic=list(self.scene.periodic))
+            lo = torch.tensor([lo for lo, _ in self.scene.bounds or ()], dtype=host.dtype)
+            box = [hi - lo for lo, hi in self.scene.bounds or ()]
             edges, shifts = ops.radius_graph(
-                x - lo, self.scene.radius, return_shifts=True, **kwargs
-            )
+                host - lo, self.scene.radius, box=box, periodic=list(self.scene.periodic),
+                return_shifts=True, **kwargs,
+            )  # fmt: skip
         else:
-            edges = ops.radius_graph(x, self.scene.radius, **kwargs)
+            edges = ops.radius_graph(host, self.scene.radius, **kwargs)
+        edges = edges.to(x.device)
         senders, receivers = edges[0], edges[1]
         relative = x.index_select(0, senders) - x.index_select(0, receivers)
         if periodic:
-            relative = relative + shifts.to(x.dtype) * self._box(x.dtype)
+            relative = relative + shifts.to(x.device, x.dtype) * self._box(x.dtype)
         return senders, receivers, relative
 
     # ------------------------------------------------------------------ preprocess
@@ -393,15 +413,19 @@ class LearnedSimulator(nn.Module):
         context: Tensor | None = None,
         material_property: Tensor | None = None,
         *,
-        graph: tuple[Tensor, Tensor, Tensor] | None = None,
+        mark: Callable[[str], None] | None = None,
     ) -> dict[str, Tensor | None]:
         """The model's inputs: node_features, edge_features, senders, receivers,
         global_features (None unless the model has a global latent and the scene a context).
         edge_features (E, D + 1) are the displacements x[senders] - x[receivers] divided by the
         radius, then their length; CConv reads its kernel coordinates from the first D columns.
 
-        graph: `self.graph(position_sequence[:, -1], n_node)` computed by the caller, so that
-        the radius search can be timed on its own (gns.rollout); default: computed here.
+        mark: called with "graph" once the radius graph is built, so that a caller can time
+        the search on its own (gns.rollout does).
+
+        Every tensor of the result is on the positions' device. The Rust core (radius graph,
+        wall and obstacle distances) reads host memory: the most recent positions are copied
+        to the CPU once per call, and the edges and the distance features come back once each.
         """
         n, steps, dim = position_sequence.shape
         c = self.config.model.velocity_history
@@ -413,22 +437,26 @@ class LearnedSimulator(nn.Module):
         if particle_type.shape != (n,):
             raise ValueError(f"particle_type must be ({n},), got {tuple(particle_type.shape)}")
         dtype, device = position_sequence.dtype, position_sequence.device
-        most_recent = position_sequence[:, -1]
+        most_recent = position_sequence[:, -1].detach()
+        host = most_recent.cpu()  # the one copy to the host (none on the CPU)
         n_graphs = 1 if n_node is None else int(n_node.shape[0])
+        senders, receivers, relative = self._graph(host, most_recent, n_node)
+        if mark is not None:
+            mark("graph")
 
         velocities = self.velocity_normalizer.normalize(self.velocity_sequence(position_sequence))
         nodes = [velocities.reshape(n, c * dim)]
+        distances = []  # computed on the host, moved to the device together
         if self.scene.wall_axes:
             walls = ops.wall_features(
-                most_recent.detach(), self.bounds, self.scene.radius, clip=self.scene.wall_clip
+                host, self.scene.bounds, self.scene.radius, clip=self.scene.wall_clip
             )
             columns = [*self.scene.wall_axes, *(dim + a for a in self.scene.wall_axes)]
-            nodes.append(walls[:, columns].to(dtype))
+            distances.append(walls[:, columns])
         if self.obstacles:
-            distances = ops.obstacle_features(
-                most_recent.detach(), self.obstacles, self.scene.radius
-            )
-            nodes.append(distances.to(dtype))
+            distances.append(ops.obstacle_features(host, self.obstacles, self.scene.radius))
+        if distances:
+            nodes.append(torch.cat(distances, dim=-1).to(device, dtype))
 
         global_features = None
         if self.context_normalizer is not None:
@@ -452,9 +480,6 @@ class LearnedSimulator(nn.Module):
         if self.particle_type_embedding is not None:
             nodes.append(self.particle_type_embedding(index).to(dtype))
 
-        if graph is None:
-            graph = self.graph(most_recent, n_node)
-        senders, receivers, relative = graph
         relative = relative / self.scene.radius
         distance = torch.linalg.vector_norm(relative, dim=-1, keepdim=True)
         return {

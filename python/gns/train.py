@@ -58,6 +58,7 @@ from gns.data.windows import Batch, WindowSampler
 from gns.device import resolve_device
 from gns.normalization import RunningNormalizer
 from gns.simulator import LearnedSimulator, Scene
+from gns.threads import thread_tuner
 
 __all__ = ["TrainingStep", "batch_tensors", "better_validation", "train", "validate"]
 
@@ -65,6 +66,8 @@ __all__ = ["TrainingStep", "batch_tensors", "better_validation", "train", "valid
 # are at least SPIKE_MIN_HISTORY of them (see TrainConfig.spike_factor).
 SPIKE_WINDOW = 100
 SPIKE_MIN_HISTORY = 20
+# Spikes printed one line each; later ones are counted and summarised (all go to spikes.csv).
+SPIKES_SHOWN = 3
 
 
 # ---------------------------------------------------------------------------------- one step
@@ -224,12 +227,13 @@ class Progress:
         self.time_limit = time_limit
         self.tty = sys.stderr.isatty()
         self.last_shown = 0.0
+        self.threads: int | None = None
 
     def rate(self, step: int) -> float:
         elapsed = time.perf_counter() - self.started
         return (step - self.start) / elapsed if elapsed > 0 else 0.0
 
-    def show(self, step: int, loss: float, force: bool = False) -> None:
+    def show(self, step: int, loss: float, force: bool = False, threads: int | None = None) -> None:
         now = time.perf_counter()
         if not self.enabled or (self.tty and not force and now - self.last_shown < 0.5):
             return
@@ -242,12 +246,59 @@ class Progress:
             left = min(left, max(0.0, self.time_limit - (now - self.started)))
         eta = time.strftime("%H:%M:%S", time.gmtime(left)) if math.isfinite(left) else "--"
         line = f"step {step}/{self.total}  loss {loss:.4g}  {rate:.2f} steps/s  left {eta}"
+        if threads is not None:
+            self.threads = threads
+        if self.threads is not None:  # chosen by timing the steps (gns.threads)
+            line += f"  {self.threads} thread{'s' if self.threads > 1 else ''}"
         sys.stderr.write(("\r" + line + "   ") if self.tty else line + "\n")
         sys.stderr.flush()
 
     def close(self) -> None:
         if self.enabled and self.tty:
             sys.stderr.write("\n")
+
+
+class SpikeReport:
+    """Loss spikes on stderr without flooding it: the first SPIKES_SHOWN each get a line, the
+    rest are only counted (every one is in spikes.csv), and `summarise` ends training with
+    their number and the worst. Rank 0 only (enabled)."""
+
+    def __init__(self, enabled: bool, meter: Progress) -> None:
+        self.enabled, self.meter = enabled, meter
+        self.count = 0
+        self.worst: tuple[float, int, float] | None = None  # (times the median, step, loss)
+
+    def _write(self, text: str) -> None:
+        newline = "\n" if self.meter.tty and self.meter.enabled else ""  # past \r lines
+        sys.stderr.write(f"{newline}{text}\n")
+
+    def add(self, step: int, loss: float, median: float, history: int, windows: str) -> None:
+        self.count += 1
+        factor = loss / median
+        if self.worst is None or factor > self.worst[0]:
+            self.worst = (factor, step, loss)
+        if not self.enabled or self.count > SPIKES_SHOWN:
+            return
+        more = (
+            "; further spikes are counted, listed in spikes.csv and summarised at the end"
+            if self.count == SPIKES_SHOWN
+            else ""
+        )
+        self._write(
+            f"loss spike at step {step}: {loss:.4g}, {factor:.1f} times the median "
+            f"{median:.4g} of the previous {history} steps, on the batch of windows "
+            f"(trajectory:start) {windows}; training goes on{more}"
+        )
+
+    def summarise(self, path: Path) -> None:
+        if not self.enabled or self.worst is None:
+            return
+        factor, step, loss = self.worst
+        self._write(
+            f"{self.count} loss spike{'s' if self.count > 1 else ''} this session (loss above "
+            f"the spike factor times the recent median); the worst at step {step}: {loss:.4g}, "
+            f"{factor:.1f} times the median; each with its batch in {path}"
+        )
 
 
 # ---------------------------------------------------------------------------------- validation
@@ -281,9 +332,7 @@ def validate(
         steps = min(config.validation_rollout_steps, trajectory.num_frames - history)
         if steps < 1:
             continue
-        # A copy: dataset arrays may be read-only, which torch.from_numpy warns about.
-        types = torch.from_numpy(np.array(trajectory.particle_type))
-        free = ~simulator.kinematic_mask(types).numpy()
+        free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
         if bounds is not None:
             truth = trajectory.positions[history : history + steps]
             truth_excursions.append(outside_box(truth[:, free], bounds))
@@ -580,10 +629,17 @@ def train(
     if checkpoint is not None:
         recent.extend(float(v) for v in checkpoint.get("recent_losses", []))
     parameters = [p for p in simulator.parameters() if p.requires_grad]
+    spikes = SpikeReport(enabled=leader, meter=meter)
+    # Threads chosen by timing the steps (gns.threads): a fixed count stalls when another
+    # process holds a core. Fixed by --threads / OMP_NUM_THREADS (e.g. for exact resumes).
+    tuner = thread_tuner()
     step = start
     stopped_at: int | None = None
     try:
+        tuner.__enter__()
         for step in range(start, tc.steps):
+            tuner.begin()
+            step_started = time.perf_counter()
             for group in optimizer.param_groups:
                 group["lr"] = tc.learning_rate_at(step)
             batch = sampler.next_batch(tc.batch_size, tc.batch_particles)
@@ -641,25 +697,18 @@ def train(
                 torch.nn.utils.clip_grads_with_norm_(parameters, tc.max_grad_norm, grad_norm)
             grad_norms.append(norm)
             optimizer.step()
+            tuner.end(time.perf_counter() - step_started)
             done = step + 1
             if tc.spike_factor and len(recent) >= SPIKE_MIN_HISTORY:
                 median = float(np.median(recent))
                 if global_loss > tc.spike_factor * median:  # the same on every rank
                     windows = _batch_windows(batch, world)
-                    if leader:
-                        newline = "\n" if meter.tty and meter.enabled else ""  # past \r lines
-                        sys.stderr.write(
-                            f"{newline}loss spike at step {done}: {global_loss:.4g}, "
-                            f"{global_loss / median:.1f} times the median {median:.4g} of the "
-                            f"previous {len(recent)} steps, on "
-                            f"the batch of windows (trajectory:start) {windows}; training "
-                            "goes on\n"
-                        )
+                    spikes.add(done, global_loss, median, len(recent), windows)
                     if log is not None:
                         log.spike(done, global_loss, median, windows)
             recent.append(global_loss)
             losses.append(value)
-            meter.show(done, value)
+            meter.show(done, value, threads=tuner.chosen if len(tuner.candidates) > 1 else None)
             stopping = out_of_time() and done < tc.steps
             if done % tc.log_every == 0 or done == tc.steps or stopping:
                 mean = torch.tensor(np.mean(losses), dtype=torch.float64, device=device)
@@ -697,7 +746,9 @@ def train(
                 stopped_at = done
                 break
     finally:
+        tuner.__exit__()
         meter.close()
+        spikes.summarise(run_dir / "spikes.csv")
         if log is not None:
             log.close()
     if stopped_at is not None and leader:
