@@ -207,7 +207,7 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
     assert main([*args, "--rest-steps", "-1"]) == 2
     # Bad input is an error message and exit status 2, not a traceback.
     assert main(["eval", "--run", str(tmp_path / "nowhere"), "--data", str(data)]) == 2
-    assert "no rollouts" in capsys.readouterr().err
+    assert "argument --run: no such file or folder" in capsys.readouterr().err
 
 
 def held_pile(context: bool) -> Trajectory:

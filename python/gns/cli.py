@@ -3,10 +3,132 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
+from gns.data.errors import DatasetError
+
+# What the work itself raises for a bad input (a missing or unreadable file, a dataset or
+# checkpoint that is not one, a setting out of range): one line and exit status 2, not a
+# traceback. DatasetError is a ValueError; it is named for the reader.
+INPUT_ERRORS = (
+    ValueError,
+    DatasetError,
+    FileNotFoundError,
+    FileExistsError,
+    IsADirectoryError,
+    NotADirectoryError,
+    PermissionError,
+)
+
+
+class ArgumentProblem(Exception):
+    """An argument found wrong after parsing, once the files it refers to are open (e.g. a
+    trajectory index past the split): reported like argparse's own errors, naming the flag."""
+
+    def __init__(self, flag: str, message: str) -> None:
+        super().__init__(f"argument {flag}: {message}")
+
+
+# argparse types: a wrong value is refused while parsing, before any work, with an error that
+# argparse prefixes with the flag ("argument --steps: must be a whole number >= 1, got 0").
+
+
+def whole_number(minimum: int) -> Callable[[str], int]:
+    """The argparse type of a whole number >= minimum."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be a whole number >= {minimum}, got {text}")
+        return value
+
+    return parse
+
+
+positive_int = whole_number(1)
+non_negative_int = whole_number(0)
+
+
+def positive_number(unit: str = "") -> Callable[[str], float]:
+    """The argparse type of a finite number > 0 (of `unit`, named in the error)."""
+    what = f"a positive number of {unit}" if unit else "a positive number"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text}")
+        return value
+
+    return parse
+
+
+positive_float = positive_number()
+
+
+def existing_path(text: str) -> Path:
+    """The argparse type of a file or folder that exists (a dataset or a run is either)."""
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"no such file or folder: {text}")
+    return path
+
+
+def existing_file(text: str) -> Path:
+    """The argparse type of a file that exists."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
+    if not path.is_file():
+        raise argparse.ArgumentTypeError(f"no such file: {text}")
+    return path
+
+
+def existing_dir(text: str) -> Path:
+    """The argparse type of a folder that exists."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a file, not a folder")
+    if not path.is_dir():
+        raise argparse.ArgumentTypeError(f"no such folder: {text}")
+    return path
+
+
+def preset_name(text: str) -> str:
+    """The argparse type of --preset: a scene preset of gns.generate."""
+    from gns.generate import PRESETS
+
+    if text not in PRESETS:
+        raise argparse.ArgumentTypeError(
+            f"unknown preset {text!r}; expected one of {', '.join(PRESETS)}"
+        )
+    return text
+
+
+def device_name(text: str) -> str:
+    """The argparse type of --device: "auto" or a name torch knows (whether that device is
+    present is gns.device.resolve_device's to say)."""
+    if text == "auto":
+        return text  # the default: no need to import torch while parsing
+    import torch
+
+    try:
+        torch.device(text)
+    except RuntimeError:
+        raise argparse.ArgumentTypeError(
+            f"expected auto, cpu, cuda, cuda:N or another torch device, got {text}"
+        ) from None
+    return text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -24,14 +146,16 @@ def build_parser() -> argparse.ArgumentParser:
         "[model] kind = 'cconv' in the config trains the CConv baseline (section D.1) "
         "instead. Several processes: torchrun --nproc_per_node K -m gns train ...",
     )
-    train.add_argument("--data", type=Path, required=True, help="dataset folder")
+    train.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     train.add_argument("--out", type=Path, required=True, help="run folder")
-    train.add_argument("--config", type=Path, help="TOML settings (or a run's config.json)")
-    train.add_argument("--steps", type=int, help="override train.steps")
+    train.add_argument(
+        "--config", type=existing_file, help="TOML settings (or a run's config.json)"
+    )
+    train.add_argument("--steps", type=positive_int, help="override train.steps")
     train.add_argument("--resume", action="store_true", help="continue the run in --out")
     train.add_argument(
         "--time-limit",
-        type=float,
+        type=positive_number("minutes"),
         metavar="MINUTES",
         help="stop after this much wall-clock time with a checkpoint (--resume continues)",
     )
@@ -46,12 +170,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--deepmind, rollout_{split}_{i}.pkl (DeepMind's layout). Prints the time per step "
         "split into graph building, features, model and integration.",
     )
-    roll.add_argument("--run", type=Path, required=True, help="run folder or checkpoint file")
-    roll.add_argument("--data", type=Path, required=True, help="dataset folder")
+    roll.add_argument(
+        "--run", type=existing_path, required=True, help="run folder or checkpoint file"
+    )
+    roll.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     roll.add_argument("--split", default="test")
     roll.add_argument("--out", type=Path, help="default: RUN/rollouts/SPLIT")
-    roll.add_argument("--trajectories", type=int, nargs="*", help="indices (default: all)")
-    roll.add_argument("--steps", type=int, help="frames to predict (default: all there are)")
+    roll.add_argument(
+        "--trajectories", type=non_negative_int, nargs="*", help="indices (default: all)"
+    )
+    roll.add_argument(
+        "--steps", type=positive_int, help="frames to predict (default: all there are)"
+    )
     roll.add_argument("--deepmind", action="store_true", help="also write DeepMind pickles")
     roll.add_argument(
         "--float64",
@@ -60,7 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     roll.add_argument(
         "--escape-distance",
-        type=float,
+        type=positive_float,
         default=1.0,
         help="stop a rollout when a particle is farther outside the domain than this many "
         "times its longest side (default 1)",
@@ -77,15 +207,17 @@ def build_parser() -> argparse.ArgumentParser:
         "and for the constant-velocity baseline, plus one-step MSE over the split's windows; "
         "writes RUN/eval_SPLIT.json.",
     )
-    ev.add_argument("--run", type=Path, required=True, help="run folder")
-    ev.add_argument("--data", type=Path, required=True, help="dataset folder")
+    ev.add_argument("--run", type=existing_path, required=True, help="run folder")
+    ev.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     ev.add_argument("--split", default="test")
-    ev.add_argument("--rollouts", type=Path, help="default: RUN/rollouts/SPLIT")
-    ev.add_argument("--one-step-windows", type=int, default=512, help="0: skip one-step MSE")
-    ev.add_argument("--every", type=int, default=1, help="OT and MMD on every k-th frame")
+    ev.add_argument("--rollouts", type=existing_dir, help="default: RUN/rollouts/SPLIT")
+    ev.add_argument(
+        "--one-step-windows", type=non_negative_int, default=512, help="0: skip one-step MSE"
+    )
+    ev.add_argument("--every", type=positive_int, default=1, help="OT and MMD on every k-th frame")
     ev.add_argument(
         "--rest-steps",
-        type=int,
+        type=non_negative_int,
         default=0,
         help="also hold each trajectory's last frame still and roll the model out this many "
         "steps from it: does a settled pile keep its packing (gns.evaluate.rest_test)? 0: skip",
@@ -94,25 +226,34 @@ def build_parser() -> argparse.ArgumentParser:
     add_runtime_options(ev)
     ev.set_defaults(handler=run_eval)
 
+    from gns.generate import PRESETS
+
     gen = sub.add_parser(
         "generate",
         help="simulate a dataset with the reference MPM simulator (DeepMind layout)",
-        description="Presets: waterdrop, water, sand, goop, multimaterial, ramps, continuous "
-        "(see gns.generate). The dataset depends on the arguments and --seed only, not on "
-        "--workers. An interrupted run is resumed by repeating the command: finished "
-        "trajectories are kept in OUT.partial/ until the dataset is complete.",
+        description=f"Presets: {', '.join(PRESETS)} (see gns.generate). The dataset depends "
+        "on the arguments and --seed only, not on --workers. An interrupted run is resumed by "
+        "repeating the command: finished trajectories are kept in OUT.partial/ until the "
+        "dataset is complete.",
     )
-    gen.add_argument("--preset", required=True, help="scene preset")
+    gen.add_argument("--preset", type=preset_name, required=True, help="scene preset")
     gen.add_argument("--out", type=Path, required=True, help="new dataset folder")
-    gen.add_argument("--n-train", type=int, required=True, help="train trajectories")
-    gen.add_argument("--n-valid", type=int, default=0, help="valid trajectories (default 0)")
-    gen.add_argument("--n-test", type=int, default=0, help="test trajectories (default 0)")
-    gen.add_argument("--seed", type=int, default=0)
+    gen.add_argument("--n-train", type=positive_int, required=True, help="train trajectories")
     gen.add_argument(
-        "--workers", type=int, help="trajectories simulated at once (default: CPU count)"
+        "--n-valid", type=non_negative_int, default=0, help="valid trajectories (default 0)"
     )
     gen.add_argument(
-        "--frames", type=int, help="frames per trajectory, frame 0 included (default: preset's)"
+        "--n-test", type=non_negative_int, default=0, help="test trajectories (default 0)"
+    )
+    gen.add_argument("--seed", type=non_negative_int, default=0)
+    gen.add_argument(
+        "--workers", type=positive_int, help="trajectories simulated at once (default: CPU count)"
+    )
+    gen.add_argument(
+        "--frames",
+        # Three frames are the fewest with an acceleration, as gns.generate requires.
+        type=whole_number(3),
+        help="frames per trajectory, frame 0 included (default: preset's)",
     )
     gen.add_argument("--quiet", action="store_true", help="no progress line")
     gen.set_defaults(handler=run_generate)
@@ -127,8 +268,10 @@ def build_parser() -> argparse.ArgumentParser:
         "several horizons), and writes report.md / report.html, table.{md,csv,json}, "
         "error_vs_time.png, error_over_time.png, a GIF of one rollout and VTK files to --out.",
     )
-    rep.add_argument("--run", type=Path, required=True, help="run folder or checkpoint file")
-    rep.add_argument("--data", type=Path, required=True, help="dataset folder")
+    rep.add_argument(
+        "--run", type=existing_path, required=True, help="run folder or checkpoint file"
+    )
+    rep.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     rep.add_argument("--split", default="test")
     rep.add_argument(
         "--checkpoint",
@@ -138,7 +281,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="one row per checkpoint (default auto: best when the run was validated)",
     )
     rep.add_argument("--out", type=Path, help="default: RUN/report_SPLIT")
-    rep.add_argument("--trajectories", type=int, metavar="N", help="the first N (default all)")
+    rep.add_argument(
+        "--trajectories", type=positive_int, metavar="N", help="the first N (default all)"
+    )
     rep.add_argument(
         "--horizons",
         nargs="+",
@@ -147,7 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rep.add_argument(
         "--every",
-        type=int,
+        type=positive_int,
         metavar="K",
         help="optimal transport and MMD on every K-th predicted frame (default 10)",
     )
@@ -160,10 +305,15 @@ def build_parser() -> argparse.ArgumentParser:
         "grid=N, cfl=X, grid=N,cfl=X, or none",
     )
     rep.add_argument(
-        "--animation-frames", type=int, default=120, help="frames in the GIF (0: none)"
+        "--animation-frames",
+        type=non_negative_int,
+        default=120,
+        help="frames in the GIF (0: none)",
     )
     rep.add_argument(
-        "--vtk-every", type=int, help="VTK frame stride (0: none; default: about 100 frames)"
+        "--vtk-every",
+        type=non_negative_int,
+        help="VTK frame stride (0: none; default: about 100 frames)",
     )
     add_runtime_options(rep)
     rep.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -179,22 +329,41 @@ def build_parser() -> argparse.ArgumentParser:
         "small) takes about 5-10 minutes on a 2-core CPU.",
     )
     demo.add_argument("--out", type=Path, default=Path("demo"), help="default: ./demo")
-    demo.add_argument("--preset", default="sand", help="gns generate preset (default sand)")
+    demo.add_argument(
+        "--preset",
+        type=preset_name,
+        default="sand",
+        help="gns generate preset (default sand)",
+    )
     demo.add_argument("--size", choices=list(SIZES), default="small", help="default small")
-    demo.add_argument("--train-minutes", type=float, help="training time (default: the size's)")
-    demo.add_argument("--steps", type=int, help="at most this many training steps")
+    demo.add_argument(
+        "--train-minutes",
+        type=positive_number("minutes"),
+        help="training time (default: the size's)",
+    )
+    demo.add_argument("--steps", type=positive_int, help="at most this many training steps")
     demo.add_argument(
         "--trajectories",
-        type=int,
+        type=positive_int,
         nargs=3,
         metavar=("TRAIN", "VALID", "TEST"),
         help="trajectories per split (default: the size's)",
     )
-    demo.add_argument("--frames", type=int, help="frames per trajectory (default: the size's)")
-    demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--workers", type=int, help="simulations at once (default: CPU count)")
+    demo.add_argument(
+        "--frames",
+        # gns.demo's minimum: the model's 6 input frames and a few to roll out.
+        type=whole_number(8),
+        help="frames per trajectory (default: the size's)",
+    )
+    demo.add_argument("--seed", type=non_negative_int, default=0)
+    demo.add_argument(
+        "--workers", type=positive_int, help="simulations at once (default: CPU count)"
+    )
     add_runtime_options(demo)
     demo.set_defaults(handler=run_demo)
+    # Problems found after parsing are reported through their command's parser (see main).
+    for command in sub.choices.values():
+        command.set_defaults(parser=command)
     return parser
 
 
@@ -211,18 +380,22 @@ def add_checkpoint_option(parser: argparse.ArgumentParser) -> None:
 
 def add_runtime_options(parser: argparse.ArgumentParser) -> None:
     """--device and --threads, shared by the commands that run the model."""
-    parser.add_argument("--device", default="auto", help="auto (default), cpu, cuda, cuda:1, ...")
-    parser.add_argument("--threads", type=int, help="torch CPU threads (default: torch's)")
+    parser.add_argument(
+        "--device", type=device_name, default="auto", help="auto (default), cpu, cuda, cuda:1, ..."
+    )
+    parser.add_argument(
+        "--threads",
+        type=positive_int,
+        help="torch CPU threads, fixed (default: one per core or one, whichever the steps run "
+        "faster with, timed again when they slow down; see gns.threads)",
+    )
 
 
 def set_threads(threads: int | None) -> None:
-    if threads is None:
-        return
-    if threads < 1:
-        raise ValueError(f"--threads must be at least 1, got {threads}")
-    import torch
+    if threads is not None:
+        from gns.threads import fix_threads
 
-    torch.set_num_threads(threads)
+        fix_threads(threads)
 
 
 def run_train(args: argparse.Namespace) -> int:
@@ -254,6 +427,18 @@ def run_rollout(args: argparse.Namespace) -> int:
     from gns.device import resolve_device
     from gns.rollout import RolloutDiverged, rollout, save_deepmind_pickle, save_rollout
 
+    dataset = open_dataset(args.data, args.split)
+    indices = args.trajectories if args.trajectories else range(len(dataset))
+    past = [i for i in indices if i >= len(dataset)]
+    if past:
+        raise ArgumentProblem(
+            "--trajectories",
+            f"expected indices 0 to {len(dataset) - 1} (the {args.split} split has "
+            f"{len(dataset)} trajectories), got {' '.join(map(str, past))}",
+        )
+    out = args.out or run_folder(args.run) / "rollouts" / args.split
+    if out.exists() and not out.is_dir():
+        raise ArgumentProblem("--out", f"{out} exists and is not a folder")
     set_threads(args.threads)
     device = resolve_device(args.device)
     checkpoint = choose_checkpoint(args.run, args.checkpoint)
@@ -261,34 +446,62 @@ def run_rollout(args: argparse.Namespace) -> int:
     simulator = load_simulator(checkpoint, device)
     if args.float64:
         simulator.double()
-    dataset = open_dataset(args.data, args.split)
-    out = args.out or run_folder(args.run) / "rollouts" / args.split
-    out.mkdir(parents=True, exist_ok=True)
-    indices = args.trajectories if args.trajectories else range(len(dataset))
+    # Absolute, so that `gns eval` finds them from any working directory.
+    info = {
+        "dataset": str(args.data.resolve()),
+        "split": args.split,
+        "checkpoint": str(checkpoint.resolve()),
+    }
     diverged = 0
     for i in indices:
-        trajectory = dataset[i]
-        info = {"dataset": str(args.data), "split": args.split, "checkpoint": str(checkpoint)}
+        stem = out / f"rollout_{args.split}_{i}"
+        note = None
         try:
             result = rollout(
                 simulator,
-                trajectory,
+                dataset[i],
                 num_steps=args.steps,
                 metadata=info,
                 escape_distance=args.escape_distance,
             )
         except RolloutDiverged as err:
-            print(f"trajectory {i}: {err}", file=sys.stderr)
             result, diverged = err.rollout, diverged + 1
-        stem = out / f"rollout_{args.split}_{i}"
+            # What diverged is the library's to say, where the finite steps went is ours: its
+            # closing clause about them ("; the N ... steps before it are ...") gives way.
+            problem = str(err).split(f"; the {err.step} ")[0]
+            note = (
+                f"trajectory {i}: {problem}; the {err.step} finite steps before it are saved in "
+                f"{stem.with_suffix('.npz')}"
+            )
+        # Made here, not before the loop: a rollout that refuses its arguments (e.g. --steps
+        # beyond the trajectory) then leaves no empty folder behind.
+        out.mkdir(parents=True, exist_ok=True)
         save_rollout(stem.with_suffix(".npz"), result)
         if args.deepmind:
             save_deepmind_pickle(stem.with_suffix(".pkl"), result)
+        if note:
+            print(note, file=sys.stderr)
         parts = "  ".join(f"{k} {1e3 * np.median(v):.2f}" for k, v in result.timings.items())
         total = 1e3 * np.median(sum(result.timings.values()))
         print(f"trajectory {i}: {result.num_steps} steps, ms/step (median) {total:.2f}: {parts}")
     print(f"wrote {len(indices)} rollouts to {out}")
     return 1 if diverged else 0
+
+
+def recorded_checkpoint(recorded: str, run: Path) -> Path:
+    """The checkpoint file a rollout's metadata names. `gns rollout` records it absolute; older
+    versions recorded it as given, relative to the directory they ran in, which is tried here
+    as the working directory and then as the run folder."""
+    path = Path(recorded)
+    tried = [path] if path.is_absolute() else [path, run_folder(run) / path]
+    for candidate in tried:
+        if candidate.is_file():
+            return candidate
+    raise ValueError(
+        f"the rollouts were made with checkpoint {recorded}, which is not at "
+        f"{' nor at '.join(str(p.absolute()) for p in tried)}; pass --checkpoint latest or best "
+        "to use one of --run's"
+    )
 
 
 def run_eval(args: argparse.Namespace) -> int:
@@ -299,8 +512,6 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.evaluate import evaluate_rollouts, one_step_errors, rest_test
     from gns.rollout import load_rollout
 
-    if args.rest_steps < 0:
-        raise ValueError(f"--rest-steps must be 0 (skip) or a step count, got {args.rest_steps}")
     set_threads(args.threads)
     folder = args.rollouts or run_folder(args.run) / "rollouts" / args.split
     files = sorted(
@@ -309,19 +520,21 @@ def run_eval(args: argparse.Namespace) -> int:
     if not files:
         raise ValueError(f"no rollouts in {folder}; run `gns rollout --run {args.run} ...` first")
     rollouts = [load_rollout(f) for f in files]
-    report = evaluate_rollouts(rollouts, distribution_every=args.every)
+    # The checkpoint and the dataset are checked before the metrics, which take the time.
     if args.one_step_windows or args.rest_steps:
         device = resolve_device(args.device)
         # The figures of the model itself come from the checkpoint the rollouts were made
         # with, unless a checkpoint was asked for.
         made_with = {r.metadata.get("checkpoint") for r in rollouts}
         if args.checkpoint == "auto" and len(made_with) == 1 and None not in made_with:
-            checkpoint = Path(str(made_with.pop()))
+            checkpoint = recorded_checkpoint(str(made_with.pop()), args.run)
         else:
             checkpoint = choose_checkpoint(args.run, args.checkpoint)
-        report["one_step_checkpoint"] = str(checkpoint)
         simulator = load_simulator(checkpoint, device)
         dataset = open_dataset(args.data, args.split)
+    report = evaluate_rollouts(rollouts, distribution_every=args.every)
+    if args.one_step_windows or args.rest_steps:
+        report["one_step_checkpoint"] = str(checkpoint.resolve())
     if args.one_step_windows:
         one_step = one_step_errors(
             simulator, list(dataset), max_windows=args.one_step_windows, device=device
@@ -340,7 +553,7 @@ def run_eval(args: argparse.Namespace) -> int:
                 for key in rest[0]
             },
         }
-    report["split"], report["rollouts"] = args.split, [str(f) for f in files]
+    report["split"], report["rollouts"] = args.split, [str(f.absolute()) for f in files]
     written = run_folder(args.run) / f"eval_{args.split}.json"
     write_json_atomic(written, report)
     mean = report["mean"]
@@ -396,9 +609,22 @@ def _command_line(argv: list[str] | None) -> str:
     return shlex.join(["gns", *(sys.argv[1:] if argv is None else argv)])
 
 
-def run_report(args: argparse.Namespace) -> int:
-    from gns.report import DEFAULT_EVERY, report
+def check_with(flag: str, parse: Callable[[list[str]], object], values: list[str]) -> None:
+    """ArgumentProblem naming `flag` when `parse` (a parser of the module that reads the
+    values) refuses them: checked here, before the work, not when the module gets to them."""
+    try:
+        parse(values)
+    except ValueError as err:
+        raise ArgumentProblem(flag, str(err)) from None
 
+
+def run_report(args: argparse.Namespace) -> int:
+    from gns.report import DEFAULT_EVERY, parse_horizons, parse_mpm_variants, report
+
+    check_with("--horizons", parse_horizons, args.horizons)
+    # The native grid and CFL number only size the "auto" variants: any valid pair checks the
+    # settings here, before report() reads the dataset's own and starts rolling out.
+    check_with("--mpm", lambda specs: parse_mpm_variants(specs, 20, 0.5), args.mpm)
     set_threads(args.threads)
     report(
         args.run,
@@ -440,13 +666,21 @@ def run_demo(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run `gns ARGV`; returns the exit status: 0, 1 (e.g. a rollout diverged) or 2 (misuse,
+    with one error line on stderr and no traceback)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as stop:  # argparse's exit: 2 after an error, 0 after --help
+        return int(stop.code or 0)
     args.command_line = _command_line(argv)
     try:
         return int(args.handler(args) or 0)
-    except ValueError as err:
+    except ArgumentProblem as err:
+        args.parser.print_usage(sys.stderr)
+        print(f"{args.parser.prog}: error: {err}", file=sys.stderr)
+    except INPUT_ERRORS as err:
         print(f"gns {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    return 2
 
 
 if __name__ == "__main__":
