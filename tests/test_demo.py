@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import torch
 from data_helpers import metadata_dict, random_walk, write_metadata
-from gns.checkpoints import latest_checkpoint
+from gns.checkpoints import latest_checkpoint, load_checkpoint
 from gns.cli import main
 from gns.config import Config, ModelConfig, TrainConfig
 from gns.data import open_dataset
 from gns.data.h5 import write_h5
-from gns.demo import demo
+from gns.demo import SIZES, demo, demo_config
 from gns.train import train
 from PIL import Image
 
@@ -91,13 +91,14 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
     with open(report / "table.csv", newline="") as f:
         records = list(csv.DictReader(f))
     assert len(records) == len(payload["rows"])
-    numbers = [c for c in payload["columns"] if c not in ("method", "setting", "device", "status")]
+    text = ("method", "setting", "device", "status", "diverged_at_step")
+    numbers = [c for c in payload["columns"] if c not in text]
     for record, row in zip(records, payload["rows"], strict=True):
         if row["status"].startswith("failed: "):
             # A cheaper simulator setting that did not hold: said so, and no numbers.
             assert row["method"] == "MPM" and row["ms_per_frame"] is None
             continue
-        assert row["status"] == "ok"
+        assert row["status"] == "ok" and row["diverged_at_step"] is None
         for column in numbers:
             if column.endswith("_ms") and row["method"] != "GNS":
                 assert record[column] == "" and row[column] is None  # no time split
@@ -118,6 +119,11 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
     for link in re.findall(r"\]\(([^)]+)\)", markdown):
         assert (report / link).is_file(), link
     assert "gns demo --out" in markdown and "logical CPUs" in markdown
+    assert markdown.splitlines()[2].startswith("**In short.** Over the full 10-frame rollouts")
+    # best.pt was chosen on validation rollouts as long as the test rollouts (issue 22).
+    config = load_checkpoint(latest_checkpoint(out / "run"))["config"]
+    assert config["train"]["validation_rollout_steps"] == frames - 6 == 10
+    assert "validation: rollouts of 10 frames, as long as the test rollouts" in markdown
     if shutil.which("ffmpeg") is None:
         assert "MP4 animation: no ffmpeg executable on PATH" in markdown
     else:
@@ -143,11 +149,32 @@ def test_demo_rejects_unknown_sizes_and_bad_overrides(tmp_path):
         demo(tmp_path / "a", size="huge")
     with pytest.raises(ValueError, match="three counts >= 1"):
         demo(tmp_path / "b", size="tiny", trajectories=(2, 0, 1))
-    with pytest.raises(ValueError, match="train_minutes must be positive, got 0"):
+    with pytest.raises(ValueError, match="train_minutes must be a positive number, got 0"):
         demo(tmp_path / "c", size="tiny", train_minutes=0)
     with pytest.raises(ValueError, match="frames must be a whole number >= 8, got 7"):
         demo(tmp_path / "d", size="tiny", frames=7)
-    assert not any(tmp_path.iterdir())  # nothing written before the arguments are checked
+    with pytest.raises(ValueError, match="train_minutes must be a positive number, got inf"):
+        demo(tmp_path / "e", size="tiny", train_minutes=math.inf)
+    with pytest.raises(ValueError, match="seed must be a whole number >= 0, got -1"):
+        demo(tmp_path / "f", size="tiny", seed=-1)
+    with pytest.raises(ValueError, match="workers must be a whole number >= 1, got 0"):
+        demo(tmp_path / "g", size="tiny", workers=0)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="no CUDA device"):
+            demo(tmp_path / "h", size="tiny", device="cuda")
+    # Nothing written before the arguments are checked: no OUT, so no demo.json that a
+    # corrected command would refuse as "other arguments".
+    assert not any(tmp_path.iterdir())
+
+
+def test_demo_validates_on_rollouts_as_long_as_the_test_rollouts():
+    # The report rolls out every frame after the first C + 1 of each test trajectory; best.pt
+    # must be chosen on rollouts as long (issue 22: chosen on 50 frames, it diverged by 155).
+    assert demo_config(SIZES["small"], 10).train.validation_rollout_steps == 155
+    for size in SIZES.values():
+        config = demo_config(size, 10)
+        history = config.model.velocity_history + 1
+        assert config.train.validation_rollout_steps == size.frames - history
 
 
 # ---------------------------------------------------------------------------- time limit

@@ -14,6 +14,7 @@ from gns import generate as gen
 from gns import mpm
 from gns.cli import main
 from gns.data import open_dataset
+from gns.data.validate import validate_dataset
 
 G_DT2 = 9.81 * 0.0025**2  # free fall per frame^2
 
@@ -143,7 +144,8 @@ def test_dataset_reads_back_with_the_scenes_it_was_drawn_from(tmp_path):
         assert len(dataset) == n
         meta = dataset.metadata
         assert (meta.dim, meta.dt, meta.sequence_length) == (2, 0.0025, 5)
-        assert meta.bounds == ((0.1, 0.9), (0.1, 0.9))
+        # The innermost wall nodes at grid 40 (dx 0.025) around the walls at 0.1 and 0.9.
+        assert meta.bounds == ((0.075, 0.925), (0.075, 0.925))
         assert meta.default_connectivity_radius == 0.015
         for index, trajectory in enumerate(dataset):
             scene, _, lattice_seed = gen.preset_scene("continuous", 0, split, index)
@@ -312,6 +314,34 @@ def test_an_existing_dataset_is_never_overwritten(tmp_path):
     (tmp_path / "d" / "metadata.json").write_text("{}")
     with pytest.raises(ValueError, match="exists and is not an empty folder"):
         tiny(tmp_path / "d")
+
+
+@pytest.mark.parametrize("preset", sorted(gen.PRESETS))
+def test_generated_data_passes_validate_with_particles_at_the_walls(tmp_path, preset):
+    """160 frames (0.4 s) take a thrown block (or a falling drop) into a wall, where the
+    simulator lets particles sink up to a cell past MpmScene.bounds: the metadata's bounds are
+    the walls' innermost grid nodes, which no particle passes by more than half a cell."""
+    out = tmp_path / preset
+    tiny(out, preset, n=(1, 0, 0), frames=160)
+    assert [str(problem) for problem in validate_dataset(out)] == []
+    (trajectory,) = open_dataset(out, "train")
+    scene = gen.preset_scene(preset, 0)[0]
+    box, walls = np.array(open_dataset(out, "train").metadata.bounds), np.array(scene.bounds)
+    x = trajectory.positions[:, trajectory.particle_type != 3]
+    lo, hi = x.min(axis=(0, 1)), x.max(axis=(0, 1))
+    # The particles did reach a wall: farther past the simulator's walls than the connectivity
+    # radius `gns validate` allows, so metadata bounds equal to those walls would fail.
+    assert max(np.max(walls[:, 0] - lo), np.max(hi - walls[:, 1])) > 0.015
+    half_cell = 0.5 / scene.grid
+    assert np.all(lo >= box[:, 0] - half_cell) and np.all(hi <= box[:, 1] + half_cell)
+
+
+def test_confinement_is_the_innermost_wall_nodes():
+    scene = mpm.MpmScene([], grid=40, bounds=((0.1, 0.9), (0.2, 0.71)))
+    assert gen.confinement(scene) == ((0.075, 0.925), (0.175, 0.725))
+    # Walls between nodes: the nodes outside them, not the walls less a cell.
+    coarse = mpm.MpmScene([], grid=20, bounds=((0.12, 0.88), (0.1, 0.9)))
+    assert gen.confinement(coarse) == ((0.1, 0.9), (0.05, 0.95))
 
 
 # ------------------------------------------------------------------------------------------ CLI

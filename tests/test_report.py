@@ -20,7 +20,17 @@ from gns.config import Config, ModelConfig, TrainConfig
 from gns.data import open_dataset
 from gns.data.h5 import write_h5
 from gns.generate import generate, preset_scene
-from gns.report import MpmVariant, parse_horizons, parse_mpm_variants, report, score
+from gns.plots import RolloutFigure, Series, animation_frames, error_over_time, error_vs_time
+from gns.report import (
+    MpmVariant,
+    Row,
+    conclusion,
+    parse_horizons,
+    parse_mpm_variants,
+    report,
+    score,
+    table_columns,
+)
 from gns.train import train
 from gns.vtk import write_series
 
@@ -200,6 +210,7 @@ def test_a_failing_cheaper_setting_is_a_row_that_says_so(generated, monkeypatch)
 
 
 def test_a_diverged_learned_rollout_is_reported_as_diverged(generated, monkeypatch):
+    import gns.plots
     import gns.rollout as rollout_module
 
     real = rollout_module.rollout
@@ -210,7 +221,17 @@ def test_a_diverged_learned_rollout_is_reported_as_diverged(generated, monkeypat
         partial = real(simulator, trajectory, num_steps=3)
         raise rollout_module.RolloutDiverged("diverged at step 3", partial, 3, 1)
 
+    # What the GIF's prediction panel shows at each frame it draws.
+    panels = {}
+    draw = RolloutFigure.draw
+
+    def recorded(figure, t):
+        image = draw(figure, t)
+        panels[t] = (figure.notice.get_text(), figure.scatters[1].get_offsets().copy())
+        return image
+
     monkeypatch.setattr(rollout_module, "rollout", diverge_after_three_steps)
+    monkeypatch.setattr(gns.plots.RolloutFigure, "draw", recorded)
     result = report(
         generated / "run",
         generated / "data",
@@ -224,14 +245,28 @@ def test_a_diverged_learned_rollout_is_reported_as_diverged(generated, monkeypat
     )
     (row,) = [r for r in result.rows if r.method == "GNS"]
     assert row.status.startswith("diverged") and "trajectory 0 at step 3" in row.status
+    assert row.diverged == [(0, 3)] and row.diverged_at == 3
     assert row.values["mse@1"] < math.inf and row.values["mse@full"] == math.inf
     assert "inf" in (result.out / "table.md").read_text()
-    record = json.loads((result.out / "table.json").read_text())["rows"][0]
+    payload = json.loads((result.out / "table.json").read_text())
+    record, baseline = payload["rows"]
     assert record["mse@full"] is None and record["mse@1"] == row.values["mse@1"]
+    assert record["diverged_at_step"] == 3 and baseline["diverged_at_step"] is None
     # VTK has only the finite frames of the prediction: 6 history + 3 predicted, every 2nd.
     pvd = ET.parse(result.out / "vtk/prediction.pvd").getroot()
     assert len(pvd.findall("./Collection/DataSet")) == len(range(0, 9, 2))
-    assert "MPM rows: none asked for" in (result.out / "report.md").read_text()
+    markdown = (result.out / "report.md").read_text()
+    assert "MPM rows: none asked for" in markdown
+    assert "VTK prediction after frame 8: the prediction diverged at frame 9" in markdown
+    assert f"{row.short} diverged: trajectory 0 at step 3 (1 of 1 trajectory)" in markdown
+    # The GIF animates the prediction up to its last finite frame (8 = 6 + 3 - 1), then says
+    # where it diverged, over that last state, instead of an empty panel.
+    (saved,) = (result.out / "rollouts").glob("*/rollout_test_0.npz")
+    last = np.load(saved)["predicted_rollout"][-1]
+    assert {8, 9, 13} <= set(panels) and len(panels) <= 5
+    assert panels[8][0] == "" and np.allclose(panels[8][1], last)
+    for t in (9, 13):
+        assert panels[t][0] == "diverged at frame 9" and np.allclose(panels[t][1], last)
 
 
 def test_datasets_not_made_by_generate_get_no_mpm_rows_and_say_why(tmp_path, one_thread):
@@ -330,11 +365,265 @@ def test_horizons_and_mpm_settings_parse():
             parse_mpm_variants(bad, 40, 0.4)
 
 
-def test_bad_report_arguments_name_the_value(generated):
-    run, data = generated / "run", generated / "data"
-    with pytest.raises(ValueError, match="between 1 and 2.*got 3"):
-        report(run, data, trajectories=3, out=generated / "bad", progress=False)
-    with pytest.raises(ValueError, match="every must be a whole number >= 1, got 0"):
-        report(run, data, every=0, out=generated / "bad", progress=False)
-    with pytest.raises(ValueError, match="does not exist"):
-        report(run, data, checkpoints=[str(generated / "nope.pt")], progress=False)
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"trajectories": 3}, "between 1 and 2.*got 3"),
+        ({"trajectories": 0}, "between 1 and 2.*got 0"),
+        ({"every": 0}, "every must be a whole number >= 1, got 0"),
+        ({"animation_frames": -1}, "animation_frames must be a whole number >= 0, got -1"),
+        ({"vtk_every": -2}, "vtk_every must be a whole number >= 0, got -2"),
+        ({"horizons": ["1", "0"]}, "a horizon must be a positive whole number"),
+        ({"mpm": ["grid=-3"]}, "MPM setting 'grid=-3'"),
+        ({"mpm": ["native", "none"]}, "cannot be combined"),
+        ({"checkpoints": ["nope.pt"]}, "does not exist"),
+        ({"checkpoints": []}, "at least one checkpoint"),
+    ],
+)
+def test_bad_report_arguments_are_refused_before_any_work(generated, monkeypatch, change, message):
+    import gns.report
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("a rollout started before every argument was checked")
+
+    monkeypatch.setattr(gns.report, "_learned_row", no_work)
+    out = generated / "refused" / "report"
+    arguments = {"out": out, "progress": False, **change}
+    with pytest.raises(ValueError, match=message):
+        report(generated / "run", generated / "data", **arguments)
+    assert not (generated / "refused").exists()
+
+
+def report_files(folder):
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*"))
+
+
+def quick_report(generated, out, **kw):
+    """One trajectory, no MPM rows, no animation, no VTK: a report in about a second."""
+    settings = dict(trajectories=1, mpm=["none"], animation_frames=0, vtk_every=0)
+    return report(
+        generated / "run", generated / "data", out=out, progress=False, **{**settings, **kw}
+    )
+
+
+def test_a_failed_report_leaves_no_folder_and_keeps_the_earlier_report(generated, monkeypatch):
+    import gns.report
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("the machine went away")
+
+    out = generated / "atomic" / "new" / "report"
+    monkeypatch.setattr(gns.report, "_constant_velocity_row", fails)
+    with pytest.raises(RuntimeError, match="went away"):
+        quick_report(generated, out)
+    # Neither the folder, nor its temporary twin, nor the parents made for it remain.
+    assert not (generated / "atomic").exists()
+    monkeypatch.undo()
+
+    earlier = quick_report(generated, out, horizons=(1, 2))
+    before = report_files(out)
+    (out / "stale.txt").write_text("from an older report")
+    monkeypatch.setattr(gns.report, "_constant_velocity_row", fails)
+    with pytest.raises(RuntimeError):
+        quick_report(generated, out)
+    assert report_files(out) == sorted([*before, "stale.txt"])  # untouched
+    assert [p.name for p in out.parent.iterdir()] == ["report"]
+    monkeypatch.undo()
+
+    # A finished report replaces the earlier one as a whole: no file of it lingers.
+    again = quick_report(generated, out)
+    assert not (out / "stale.txt").exists() and again.out == earlier.out == out
+    assert "mse@2" not in json.loads((out / "table.json").read_text())["columns"]
+    assert all(path.is_file() and path.parent == out for path in again.files.values())
+    assert [p.name for p in out.parent.iterdir()] == ["report"]
+
+
+def test_a_folder_that_is_not_a_report_is_refused_before_any_work(generated):
+    out = generated / "not_a_report"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="is not a gns report folder"):
+        quick_report(generated, out)
+    assert report_files(out) == ["notes.txt"]
+
+
+# ---------------------------------------------------------------------------------- conclusion
+
+
+def row(short, role, seconds, values, native=False, diverged=(), trajectories=2):
+    method = short.split()[0] if role != "baseline" else short
+    return Row(
+        method,
+        short,
+        "cpu",
+        seconds_per_frame=seconds,
+        values=values,
+        trajectories=trajectories,
+        short=short,
+        role=role,
+        native=native,
+        diverged=list(diverged),
+    )
+
+
+def values(one, ten, full):
+    return {"mse@1": one, "mse@10": ten, "mse@full": full}
+
+
+COLUMNS = table_columns((1, 10, None), 155)
+
+
+def test_conclusion_says_who_wins_where_by_how_much_and_at_what_cost():
+    rows = [
+        # best.pt: the best early on, then diverged on trajectory 0 at step 12.
+        row("GNS best.pt (step 500)", "learned", 1.9e-3, values(1e-8, 2e-8, math.inf),
+            diverged=[(0, 12)]),
+        row("GNS latest.pt (step 4000)", "learned", 2e-3, values(2e-8, 5e-8, 1e-4)),
+        row("MPM grid 40 (native)", "mpm", 6e-3, values(0.0, 0.0, 0.0), native=True),
+        row("MPM grid 24", "mpm", 3e-3, values(4e-8, 1e-7, 2e-4)),
+        row("constant velocity", "baseline", 1e-5, values(3e-8, 4e-8, 3e-4)),
+    ]  # fmt: skip
+    assert conclusion(rows, COLUMNS, 155) == [
+        "Over the full 155-frame rollouts GNS latest.pt (step 4000) has 3.0x lower MSE than "
+        "constant velocity (0.0001 against 0.0003) at 2.0 ms per frame, 3.0x faster than the "
+        "reference simulator at its native settings (6.0 ms).",
+        "Lowest MSE, leaving out the MPM at its native settings (it is the ground truth): the "
+        "first predicted frame: GNS best.pt (step 500), 3.0x lower MSE than constant velocity; "
+        "the first 10 predicted frames: GNS best.pt (step 500), 2.0x lower MSE than constant "
+        "velocity; the full 155-frame rollouts: GNS latest.pt (step 4000), 3.0x lower MSE than "
+        "constant velocity.",
+        "Against the reference simulator at cheaper settings over the full 155-frame rollouts, "
+        "GNS latest.pt (step 4000) has 2.0x lower MSE than MPM grid 24 (0.0002 at 3.0 ms per "
+        "frame, 1.5x faster than it).",
+        "GNS best.pt (step 500) diverged: trajectory 0 at step 12 (1 of 2 trajectories); its "
+        "later frames count as infinitely wrong.",
+    ]
+
+
+def test_conclusion_stays_true_when_the_model_loses_and_there_is_no_simulator():
+    rows = [
+        row("GNS latest.pt (step 20)", "learned", 4e-3, values(1e-8, 9e-8, 6e-4)),
+        row("constant velocity", "baseline", 1e-5, values(2e-8, 3e-8, 2e-4)),
+    ]
+    assert conclusion(rows, COLUMNS, 155) == [
+        "Over the full 155-frame rollouts GNS latest.pt (step 20) has 3.0x higher MSE than "
+        "constant velocity (0.0006 against 0.0002) at 4.0 ms per frame; the reference "
+        "simulator was not run (see Left out).",
+        "Lowest MSE: the first predicted frame: GNS latest.pt (step 20), 2.0x lower MSE than "
+        "constant velocity; the first 10 predicted frames: constant velocity, 3.0x lower MSE "
+        "than GNS latest.pt (step 20); the full 155-frame rollouts: constant velocity, 3.0x "
+        "lower MSE than GNS latest.pt (step 20).",
+        "No learned rollout diverged.",
+    ]
+
+
+def test_conclusion_when_every_learned_row_diverged_and_a_cheaper_simulator_failed():
+    rows = [
+        row("GNS best.pt (step 500)", "learned", 2e-3, values(1e-8, math.inf, math.inf),
+            diverged=[(0, 4), (1, 7)]),
+        row("MPM grid 40 (native)", "mpm", 6e-3, values(0.0, 0.0, 0.0), native=True),
+        row("MPM grid 12", "mpm", None, {}),
+        row("constant velocity", "baseline", 1e-5, values(3e-8, 4e-8, 3e-4)),
+    ]  # fmt: skip
+    first, winners, diverged = conclusion(rows, COLUMNS, 155)
+    assert first.startswith("Over the full 155-frame rollouts no learned model has a finite MSE")
+    assert "constant velocity's is 0.0003" in first
+    assert winners.endswith(
+        "the first 10 predicted frames: constant velocity (every learned model had diverged); "
+        "the full 155-frame rollouts: constant velocity (every learned model had diverged)."
+    )
+    assert diverged.startswith(
+        "GNS best.pt (step 500) diverged: trajectory 0 at step 4, trajectory 1 at step 7 "
+        "(2 of 2 trajectories)"
+    )
+
+
+def test_the_conclusion_opens_the_report(generated_report):
+    out, rows = generated_report.out, generated_report.rows
+    payload = json.loads((out / "table.json").read_text())
+    sentences = conclusion(rows, payload["columns"], payload["context"]["steps"])
+    assert payload["context"]["conclusion"] == sentences and len(sentences) >= 3
+    assert any("the reference simulator at its native settings" in s for s in sentences)
+    markdown = (out / "report.md").read_text().splitlines()
+    assert markdown[2] == "**In short.** " + " ".join(sentences)
+    html = (out / "report.html").read_text()
+    assert html.index("<b>In short.</b>") < html.index("<table>")
+
+
+# ------------------------------------------------------------------------- diverged in figures
+
+
+def x_marks(ax):
+    return [line for line in ax.lines if line.get_marker() == "x"]
+
+
+def legend_texts(figure):
+    return [text.get_text() for legend in figure.legends for text in legend.get_texts()]
+
+
+def test_error_over_time_marks_where_a_series_diverged(tmp_path):
+    diverged = Series(
+        "GNS best.pt",
+        2e-3,
+        {"mse@full": math.inf},
+        (np.arange(5), np.array([1e-4, 2e-4, 4e-4, math.inf, math.inf])),
+        (np.array([0, 3]), np.array([1e-4, math.inf])),
+        diverged_at=3,
+    )
+    fine = Series(
+        "constant velocity",
+        1e-5,
+        {"mse@full": 1e-3},
+        (np.arange(5), np.full(5, 1e-3)),
+        (np.array([0, 3]), np.full(2, 1e-3)),
+    )
+    figure = error_over_time([diverged, fine], tmp_path / "over_time.png", first_frame=6)
+    mse_panel, ot_panel = figure.axes[:2]
+    # The x sits on the last finite point: frame 6 + 2 (MSE) and 6 + 0 (OT, every 3rd frame).
+    ((mse_x,),) = [line.get_xydata().tolist() for line in x_marks(mse_panel)]
+    ((ot_x,),) = [line.get_xydata().tolist() for line in x_marks(ot_panel)]
+    assert mse_x == [8.0, 4e-4] and ot_x == [6.0, 1e-4]
+    assert x_marks(mse_panel)[0].get_color() == mse_panel.lines[0].get_color()
+    assert legend_texts(figure) == ["GNS best.pt: diverged at step 3", "constant velocity"]
+
+
+def test_error_vs_time_marks_a_method_that_diverged_before_a_horizon(tmp_path):
+    series = [
+        Series("GNS best.pt", 2e-3, {"mse@1": 1e-8, "mse@full": math.inf}, diverged_at=3),
+        # Diverged at its first step: no time and no finite value, still in the legend.
+        Series("GNS latest.pt", None, {"mse@1": math.inf, "mse@full": math.inf}, diverged_at=0),
+        Series("constant velocity", 1e-5, {"mse@1": 3e-8, "mse@full": 3e-4}),
+    ]
+    figure = error_vs_time(series, ["mse"], ["1", "full"], tmp_path / "vs_time.png")
+    first, full = figure.axes[:2]
+    assert x_marks(first) == [] and len(first.collections) == 2  # both finite at frame 1
+    (mark,) = x_marks(full)
+    assert mark.get_xdata().tolist() == [2.0]  # at its time per frame, ms
+    assert mark.get_transform() == full.get_xaxis_transform()  # on the top edge
+    assert legend_texts(figure) == [
+        "GNS best.pt: diverged at step 3",
+        "GNS latest.pt: diverged at step 0",
+        "constant velocity",
+    ]
+
+
+def test_the_animation_shows_a_diverged_prediction_up_to_where_it_diverged():
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.2, 0.8, size=(10, 4, 2))
+    predicted = truth + 0.01
+    predicted[7:] = np.nan
+    figure = RolloutFigure(truth, predicted, np.full(4, 6), None, ("a", "b"), 3, 0.0025)
+    assert figure.diverged_at == 7
+    figure.draw(6)
+    assert figure.notice.get_text() == ""
+    np.testing.assert_allclose(figure.scatters[1].get_offsets(), predicted[6])
+    for t in (7, 9):
+        figure.draw(t)
+        assert figure.notice.get_text() == "diverged at frame 7"
+        np.testing.assert_allclose(figure.scatters[1].get_offsets(), predicted[6])
+        np.testing.assert_allclose(figure.scatters[0].get_offsets(), truth[t])
+    # Even spacing would skip frames 46 and 47: they replace their neighbours, within the cap.
+    frames = animation_frames(100, 10, diverged_at=47).tolist()
+    assert len(frames) == 10 and {0, 46, 47, 99} <= set(frames)
+    assert animation_frames(100, 10).tolist() == [0, 11, 22, 33, 44, 55, 66, 77, 88, 99]
+    assert animation_frames(5, 10, diverged_at=3).tolist() == [0, 1, 2, 3, 4]

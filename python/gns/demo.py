@@ -4,7 +4,8 @@
 
 1. generate  a small dataset with the reference simulator (gns.generate; resumes by itself)
 2. train     a small GNS for a bounded wall-clock time (gns.train's time_limit), validating on
-             the valid split so that checkpoints/best.pt exists
+             the valid split so that checkpoints/best.pt exists, with rollouts as long as the
+             report's (whole trajectories)
 3. report    rollouts of the held-out test trajectories with the best and the latest checkpoint,
              against the simulator at native and cheaper settings and the constant-velocity
              baseline (gns.report), into OUT/report/
@@ -12,13 +13,15 @@
 Every phase reports progress on stderr. Running the same command again resumes: the dataset is
 reused, an interrupted training continues from its last checkpoint (with the full time budget
 again), a finished one is kept, and the report is rewritten. OUT/demo.json records the
-arguments; other arguments in the same folder are refused rather than mixed.
+arguments; other arguments in the same folder are refused rather than mixed. Every argument is
+checked before OUT is made.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import sys
 import time
@@ -61,15 +64,21 @@ def demo_config(size: DemoSize, steps: int) -> Any:
     """The GNS settings of a demo: the paper's model at the size's width and depth, noise
     1e-4 (the paper's 3e-4 is about the per-frame acceleration std of the generated sand, and
     less noise learns faster in a short budget), learning rate 4e-4 decaying 10x over 20000
-    steps, validation rollouts of 50 frames on the valid split."""
+    steps, validation rollouts of whole trajectories (size.frames less the C + 1 input frames)
+    on the valid split.
+
+    Whole trajectories, because best.pt is what the report rolls out on the test split, over
+    the same length: a model chosen on 50-frame rollouts was seen to beat the others there and
+    then diverge on the 155 frames of the test rollouts (issue 22)."""
     from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
 
+    model = ModelConfig(
+        latent_size=size.latent,
+        mlp_hidden_size=size.latent,
+        message_passing_steps=size.message_passing_steps,
+    )
     return Config(
-        model=ModelConfig(
-            latent_size=size.latent,
-            mlp_hidden_size=size.latent,
-            message_passing_steps=size.message_passing_steps,
-        ),
+        model=model,
         noise=NoiseConfig(std=1e-4),
         train=TrainConfig(
             steps=steps,
@@ -80,7 +89,7 @@ def demo_config(size: DemoSize, steps: int) -> Any:
             validate_every=size.validate_every,
             validation_windows=64,
             validation_rollouts=2,
-            validation_rollout_steps=50,
+            validation_rollout_steps=size.frames - (model.velocity_history + 1),
             checkpoint_every=max(size.validate_every, 500),
             keep_checkpoints=2,
         ),
@@ -125,10 +134,13 @@ def demo(
     override its values. The test split is what the report rolls out.
     """
     from gns.checkpoints import latest_checkpoint, load_checkpoint
+    from gns.device import resolve_device
     from gns.generate import PRESETS, generate
     from gns.report import report
     from gns.train import train
 
+    # Every argument is checked here, before OUT (and demo.json in it) is made: a typo must not
+    # leave a folder that a corrected command would then refuse as "other arguments".
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
     if size not in SIZES:
@@ -139,10 +151,11 @@ def demo(
             raise ValueError(
                 f"trajectories must be three counts >= 1 (train, valid, test), got {trajectories}"
             )
-        chosen = dataclasses.replace(chosen, trajectories=tuple(int(n) for n in trajectories))
+        train_n, valid_n, test_n = (int(n) for n in trajectories)
+        chosen = dataclasses.replace(chosen, trajectories=(train_n, valid_n, test_n))
     if train_minutes is not None:
-        if not train_minutes > 0:
-            raise ValueError(f"train_minutes must be positive, got {train_minutes}")
+        if not (train_minutes > 0 and math.isfinite(train_minutes)):
+            raise ValueError(f"train_minutes must be a positive number, got {train_minutes}")
         chosen = dataclasses.replace(chosen, minutes=float(train_minutes))
     if steps is not None:
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
@@ -153,6 +166,13 @@ def demo(
         if isinstance(frames, bool) or not isinstance(frames, int) or frames < 8:
             raise ValueError(f"frames must be a whole number >= 8, got {frames!r}")
         chosen = dataclasses.replace(chosen, frames=frames)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be a whole number >= 0, got {seed!r}")
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, int) or workers < 1
+    ):
+        raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
+    resolve_device(device)
     out = Path(out)
     arguments = {"preset": preset, "seed": seed, **dataclasses.asdict(chosen)}
     arguments["trajectories"] = list(chosen.trajectories)
@@ -225,8 +245,9 @@ def demo(
         f"GNS latent {chosen.latent}, {chosen.message_passing_steps} message-passing steps, "
         f"noise 1e-4: trained {trained['step']} steps in {trained['seconds'] / 60:.1f} min "
         f"(budget {chosen.minutes:g} min or {chosen.steps} steps); best.pt is the checkpoint "
-        "`gns train` keeps as best by validation (rollouts of up to 50 frames on 2 valid "
-        "trajectories)",
+        "`gns train` keeps as best by validation: rollouts of "
+        f"{config.train.validation_rollout_steps} frames, as long as the test rollouts, on "
+        f"{min(n_valid, config.train.validation_rollouts)} valid trajectories",
     ]
     result = report(
         run,

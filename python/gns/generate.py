@@ -17,6 +17,9 @@ All share one resolution (RESOLUTION: lattice spacing 0.01, grid dx 0.025), chos
 speed so that waterdrop and sand match the paper's per-frame statistics within a factor 1.5
 (benches/mpm.py --calibrate).
 
+Metadata bounds are where the simulator stops the particles (see `confinement`), the innermost
+grid nodes of its walls, not the walls' nominal position MpmScene.bounds.
+
 Reproducibility: trajectory i of a split is drawn from SeedSequence(seed, spawn_key=(split,
 i, draw)), so a dataset depends on the seed and the arguments only, never on the number of
 workers or on the order trajectories finish in. A draw whose simulation fails (NaN, a particle
@@ -52,7 +55,15 @@ from gns.data.stats import StatisticsAccumulator
 from gns.data.trajectory import Trajectory
 from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water
 
-__all__ = ["PRESETS", "SPLITS", "Summary", "generate", "preset_scene", "trajectory_seed"]
+__all__ = [
+    "PRESETS",
+    "SPLITS",
+    "Summary",
+    "confinement",
+    "generate",
+    "preset_scene",
+    "trajectory_seed",
+]
 
 SPLITS = ("train", "valid", "test")
 # The paper's 2D connectivity radius: about 7 neighbours at the lattice spacing 0.01 below.
@@ -272,6 +283,30 @@ def _preset(name: str) -> Preset:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
     return PRESETS[name]
+
+
+def confinement(scene: MpmScene) -> tuple[tuple[float, float], ...]:
+    """The box the simulator keeps the particles of `scene` in, per axis: from the innermost
+    grid node of the lower wall to that of the upper wall. These are the dataset's bounds.
+
+    MpmScene.bounds is not that box. The simulator (rust/mpm.rs, update_grid) enforces the walls
+    on the grid nodes outside `bounds`, and a particle takes its velocity from the 3 x 3 nodes
+    around it (quadratic B-splines), so one that has crossed `bounds` keeps moving with the
+    nodes inside until its weights lie on wall nodes only: half a cell past the innermost wall
+    node. Thrown sand went 0.027 past `bounds` at dx = 0.025, almost twice the connectivity
+    radius `gns validate` allows. From the innermost wall nodes no particle gets farther out
+    than half a cell (0.0125 at RESOLUTION's dx), and particles resting on a wall sit about on
+    the bound, which is what the model's wall features (distances to the bounds) should say.
+    Wall nodes are found as the simulator finds them: node k at k * (1 / grid), outside
+    `bounds`."""
+    dx = 1.0 / scene.grid
+    nodes = np.arange(scene.grid + 1) * dx
+    box = []
+    for lo, hi in scene.bounds:
+        # The simulator wants `bounds` 2 cells inside the domain: both walls have nodes.
+        below, above = np.flatnonzero(nodes < lo)[-1], np.flatnonzero(nodes > hi)[0]
+        box.append((float(below / scene.grid), float(above / scene.grid)))
+    return tuple(box)
 
 
 # ------------------------------------------------------------------------------------ progress
@@ -558,7 +593,7 @@ def _assemble(
             raise ValueError(f"cached trajectories in {work} differ in length: {sorted(lengths)}")
         scene = preset_scene(preset, seed)[0]
         metadata = Metadata(
-            bounds=tuple((lo, hi) for lo, hi in scene.bounds),
+            bounds=confinement(scene),
             sequence_length=lengths.pop() - 1,
             default_connectivity_radius=CONNECTIVITY_RADIUS,
             dim=2,

@@ -25,7 +25,16 @@ from PIL import Image
 
 from gns.data.atomic import atomic_file
 
-__all__ = ["Series", "animation", "error_over_time", "error_vs_time", "type_colours"]
+__all__ = [
+    "RolloutFigure",
+    "Series",
+    "animation",
+    "animation_frames",
+    "diverged_frame",
+    "error_over_time",
+    "error_vs_time",
+    "type_colours",
+]
 
 # DeepMind's particle types (learning_to_simulate's datasets), which gns.mpm also uses.
 TYPE_NAMES = {3: "obstacle", 5: "water", 6: "sand", 7: "goop"}
@@ -54,17 +63,47 @@ def type_colours(types: np.ndarray) -> tuple[np.ndarray, dict[int, str]]:
 class Series:
     """One method (a row of the report's table) in the figures: a short label, wall time per
     frame in seconds (None if unknown), its figures by metric key ("mse@10", "ot@full", ...;
-    missing when not computed, inf when it diverged), and per-frame curves (frames, values) of
-    MSE and of optimal transport for the error-over-time figure."""
+    missing when not computed, inf when it diverged), per-frame curves (frames, values) of
+    MSE and of optimal transport for the error-over-time figure, and the rollout step at which
+    it diverged (None if it did not), after which its values are inf."""
 
     label: str
     seconds_per_frame: float | None
     values: Mapping[str, float]
     mse_curve: tuple[np.ndarray, np.ndarray] | None = None
     ot_curve: tuple[np.ndarray, np.ndarray] | None = None
+    diverged_at: int | None = None
+
+    @property
+    def legend(self) -> str:
+        """The label, with where it diverged: a diverged method must not pass for a good one
+        whose points happen to be missing."""
+        if self.diverged_at is None:
+            return self.label
+        return f"{self.label}: diverged at step {self.diverged_at}"
 
 
-def _styles(series: Sequence[Series]) -> list[dict[str, str]]:
+# A diverged method's mark: an x at its last finite point, or at the top edge of a panel where
+# it has none.
+_DIVERGED_MARKER = "x"
+_DIVERGED: dict[str, Any] = {
+    "marker": _DIVERGED_MARKER,
+    "markersize": 9,
+    "markeredgewidth": 2,
+    "linestyle": "none",
+}
+
+
+def _mark_diverged(ax: Any, x: float, y: float | None, colour: str) -> None:
+    """The x of a diverged method at (x, y), or at x on the panel's top edge when y is None
+    (no finite value to put it at: a log axis cannot show inf)."""
+    if y is None:
+        ax.plot([x], [0.97], color=colour, transform=ax.get_xaxis_transform(), **_DIVERGED)
+    else:
+        ax.plot([x], [y], color=colour, **_DIVERGED)
+
+
+def _styles(series: Sequence[Series]) -> list[dict[str, Any]]:
     """The same colour and marker for a method in every figure."""
     return [
         {"marker": _MARKERS[i % len(_MARKERS)], "color": f"C{i % 10}"} for i in range(len(series))
@@ -100,28 +139,29 @@ def error_vs_time(
     horizons: Sequence[str],
     path: str | os.PathLike[str],
     title: str = "",
-) -> None:
+) -> Figure:
     """A grid of log-log scatter plots, one row per metric ("mse", "ot", "mmd") and one column
     per horizon ("1", "10", "full"): error against milliseconds per simulated frame, one marker
     per method. An error of exactly 0 (a deterministic simulator reproducing its own ground
     truth) cannot sit on a log axis: it is drawn hollow at the bottom of the panel, labelled
-    "= 0". Methods without a time or a finite value are left out of that panel."""
+    "= 0". A method that diverged before a horizon (inf) is an x on that panel's top edge and
+    says where it diverged in the legend. Methods without a time or a value are left out of
+    that panel. Returns the figure (saved to `path`)."""
     rows, cols = len(metrics), len(horizons)
     figure = Figure(figsize=(3.3 * cols + 0.6, 2.7 * rows + 0.6 + 0.25 * len(series) / 2), dpi=100)
     axes = figure.subplots(rows, cols, squeeze=False)
     styles = _styles(series)
-    drawn: set[int] = set()
+    drawn = {i for i, s in enumerate(series) if s.diverged_at is not None}
     for r, metric in enumerate(metrics):
         for c, horizon in enumerate(horizons):
             ax = axes[r][c]
             key = f"{metric}@{horizon}"
-            points = [
+            timed = [
                 (i, s.seconds_per_frame * 1e3, value)
                 for i, s in enumerate(series)
-                if s.seconds_per_frame is not None
-                and (value := s.values.get(key)) is not None
-                and math.isfinite(value)  # inf (diverged): nothing to draw; the table says so
+                if s.seconds_per_frame is not None and (value := s.values.get(key)) is not None
             ]
+            points = [(i, ms, value) for i, ms, value in timed if math.isfinite(value)]
             positive = [v for _, _, v in points if v > 0]
             floor = min(positive) / 10 if positive else 1e-12
             for i, ms, value in points:
@@ -132,6 +172,10 @@ def error_vs_time(
                 else:
                     ax.scatter([ms], [value], s=50, **styles[i])
                 drawn.add(i)
+            for i, ms, value in timed:
+                if not math.isfinite(value):
+                    _mark_diverged(ax, ms, None, styles[i]["color"])
+                    drawn.add(i)
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.grid(True, which="both", alpha=0.3)
@@ -145,8 +189,17 @@ def error_vs_time(
     handles = [Line2D([], [], linestyle="none", markersize=7, **styles[i]) for i in shown]
     if title:
         figure.suptitle(title, fontsize=11)
-    _legend_below(figure, handles, [series[i].label for i in shown], 0.96 if title else 1.0)
+    _legend_below(figure, handles, [series[i].legend for i in shown], 0.96 if title else 1.0)
     _save_png(figure, path)
+    return figure
+
+
+def _last_finite(values: np.ndarray) -> tuple[int | None, int | None]:
+    """(index of the last finite value before the first non-finite one, or None; index of the
+    first non-finite one, or None)."""
+    bad = np.flatnonzero(~np.isfinite(values))
+    end = int(bad[0]) if len(bad) else len(values)
+    return (end - 1 if end > 0 else None), (int(bad[0]) if len(bad) else None)
 
 
 def error_over_time(
@@ -154,27 +207,37 @@ def error_over_time(
     path: str | os.PathLike[str],
     first_frame: int = 0,
     title: str = "",
-) -> None:
+) -> Figure:
     """Two panels over frame number: each method's per-frame MSE and its optimal-transport
     distance at the frames where that was evaluated. Curve frames count from 0 = the first
     predicted frame, shown as `first_frame`. Values that are 0 or infinite cannot be drawn on a
-    log axis and are left out; a method that is 0 throughout is named as such."""
+    log axis and are left out; a method that is 0 throughout is named as such, and one that
+    diverged gets an x at its last finite point (at the top edge over the frame it diverged at,
+    if it has none) and says where in the legend. Returns the figure (saved to `path`)."""
     figure = Figure(figsize=(11, 4.2 + 0.25 * len(series) / 2), dpi=100)
     axes = figure.subplots(1, 2)
     styles = _styles(series)
     handles, labels = [], []
     for i, s in enumerate(series):
         zero = True
+        colour = styles[i]["color"]
         for ax, curve in ((axes[0], s.mse_curve), (axes[1], s.ot_curve)):
             if curve is None:
                 continue
             frames, values = np.asarray(curve[0]), np.asarray(curve[1], dtype=np.float64)
             zero = zero and bool(np.all(values == 0))
             shown = np.where(np.isfinite(values) & (values > 0), values, np.nan)
-            ax.plot(frames + first_frame, shown, color=styles[i]["color"], lw=1.5)
+            ax.plot(frames + first_frame, shown, color=colour, lw=1.5)
+            last, bad = _last_finite(values)
+            if s.diverged_at is not None and bad is not None:
+                if last is not None and values[last] > 0:
+                    _mark_diverged(ax, frames[last] + first_frame, values[last], colour)
+                else:
+                    _mark_diverged(ax, frames[bad] + first_frame, None, colour)
         if s.mse_curve is not None:
-            handles.append(Line2D([], [], color=styles[i]["color"], lw=1.5))
-            labels.append(f"{s.label} (0 throughout)" if zero else s.label)
+            marker = "none" if s.diverged_at is None else _DIVERGED_MARKER
+            handles.append(Line2D([], [], color=colour, lw=1.5, marker=marker))
+            labels.append(f"{s.label} (0 throughout)" if zero else s.legend)
     for ax, name in ((axes[0], "MSE"), (axes[1], "W2^2")):
         ax.set_yscale("log")
         ax.set_xlabel("frame")
@@ -186,6 +249,7 @@ def error_over_time(
         figure.suptitle(title, fontsize=11)
     _legend_below(figure, handles, labels, 0.94 if title else 1.0)
     _save_png(figure, path)
+    return figure
 
 
 def _limits(
@@ -200,47 +264,108 @@ def _limits(
     return [(lo - 0.05 * (hi - lo), hi + 0.05 * (hi - lo)) for lo, hi in box]
 
 
-def _frame_images(
-    truth: np.ndarray,
-    predicted: np.ndarray,
-    particle_type: np.ndarray,
-    bounds: Sequence[Sequence[float]] | None,
-    titles: tuple[str, str],
-    frames: np.ndarray,
-    first_predicted: int,
-    dt: float | None,
-) -> list[Image.Image]:
-    colours, legend = type_colours(particle_type)
-    figure = Figure(figsize=(8, 4.3), dpi=80)
-    canvas = FigureCanvasAgg(figure)
-    axes = figure.subplots(1, 2)
-    limits = _limits(truth, predicted, bounds)
-    size = float(np.clip(3000 / max(1, truth.shape[1]), 0.5, 12))
-    scatters = []
-    for ax, title in zip(axes, titles, strict=True):
-        ax.set_xlim(*limits[0])
-        ax.set_ylim(*limits[1])
-        ax.set_aspect("equal")
-        ax.set_xticks([])
-        ax.set_yticks([])
-        ax.set_title(title, fontsize=10)
-        scatters.append(ax.scatter(truth[0, :, 0], truth[0, :, 1], s=size, c=colours, lw=0))
-    for t, colour in legend.items():
-        axes[0].scatter([], [], s=20, c=colour, label=TYPE_NAMES.get(t, f"type {t}"))
-    axes[0].legend(loc="upper right", fontsize=7, markerscale=1.0)
-    figure.subplots_adjust(left=0.02, right=0.98, top=0.92, bottom=0.08, wspace=0.05)
-    caption = figure.text(0.5, 0.02, "", ha="center", fontsize=9)
-    images = []
-    for t in frames.tolist():
-        for scatter, positions in zip(scatters, (truth[t], predicted[t]), strict=True):
-            scatter.set_offsets(positions[:, :2])
-        phase = "given (history)" if t < first_predicted else "predicted"
-        when = f"  t = {t * dt:.3f} s" if dt else ""
-        caption.set_text(f"frame {t}{when}  ({phase})")
-        canvas.draw()
-        rgba = np.asarray(canvas.buffer_rgba())
-        images.append(Image.fromarray(rgba[..., :3].copy()))
-    return images
+def diverged_frame(positions: np.ndarray) -> int | None:
+    """The first frame of positions (T, N, D) holding a non-finite value (where a rollout
+    diverged and was padded with NaN), or None when every frame is finite."""
+    bad = np.flatnonzero(~np.isfinite(np.asarray(positions)).all(axis=(1, 2)))
+    return int(bad[0]) if len(bad) else None
+
+
+class RolloutFigure:
+    """The animation's figure: ground truth and prediction side by side, coloured by particle
+    type. draw(t) shows frame t. A prediction that diverged (non-finite from frame k on) is
+    shown up to frame k - 1; from frame k its panel keeps that last state, faded, under
+    "diverged at frame k", rather than going blank."""
+
+    def __init__(
+        self,
+        truth: np.ndarray,
+        predicted: np.ndarray,
+        particle_type: np.ndarray,
+        bounds: Sequence[Sequence[float]] | None,
+        titles: tuple[str, str],
+        first_predicted: int,
+        dt: float | None,
+    ) -> None:
+        self.truth, self.predicted = truth, predicted
+        self.first_predicted, self.dt = first_predicted, dt
+        self.diverged_at = diverged_frame(predicted)
+        colours, legend = type_colours(particle_type)
+        self.figure = Figure(figsize=(8, 4.3), dpi=80)
+        self.canvas = FigureCanvasAgg(self.figure)
+        axes = self.figure.subplots(1, 2)
+        limits = _limits(truth, predicted, bounds)
+        size = float(np.clip(3000 / max(1, truth.shape[1]), 0.5, 12))
+        self.scatters = []
+        for ax, title in zip(axes, titles, strict=True):
+            ax.set_xlim(*limits[0])
+            ax.set_ylim(*limits[1])
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(title, fontsize=10)
+            self.scatters.append(
+                ax.scatter(truth[0, :, 0], truth[0, :, 1], s=size, c=colours, lw=0)
+            )
+        for t, colour in legend.items():
+            axes[0].scatter([], [], s=20, c=colour, label=TYPE_NAMES.get(t, f"type {t}"))
+        axes[0].legend(loc="upper right", fontsize=7, markerscale=1.0)
+        self.notice = axes[1].text(
+            0.5,
+            0.5,
+            "",
+            transform=axes[1].transAxes,
+            ha="center",
+            va="center",
+            fontsize=13,
+            color="#d62728",
+            fontweight="bold",
+        )
+        self.figure.subplots_adjust(left=0.02, right=0.98, top=0.92, bottom=0.08, wspace=0.05)
+        self.caption = self.figure.text(0.5, 0.02, "", ha="center", fontsize=9)
+
+    def draw(self, t: int) -> Image.Image:
+        """Frame t as an RGB image."""
+        truth, prediction = self.scatters
+        truth.set_offsets(self.truth[t, :, :2])
+        stop = self.diverged_at
+        if stop is None or t < stop:
+            prediction.set_offsets(self.predicted[t, :, :2])
+            prediction.set_alpha(None)
+            self.notice.set_text("")
+        else:
+            # Diverged at frame 0 would leave nothing finite to keep: then only the notice.
+            kept = self.predicted[stop - 1, :, :2] if stop > 0 else np.empty((0, 2))
+            prediction.set_offsets(kept)
+            prediction.set_alpha(0.25)
+            self.notice.set_text(f"diverged at frame {stop}")
+        phase = "given (history)" if t < self.first_predicted else "predicted"
+        when = f"  t = {t * self.dt:.3f} s" if self.dt else ""
+        self.caption.set_text(f"frame {t}{when}  ({phase})")
+        self.canvas.draw()
+        rgba = np.asarray(self.canvas.buffer_rgba())
+        return Image.fromarray(rgba[..., :3].copy())
+
+
+def animation_frames(total: int, max_frames: int, diverged_at: int | None = None) -> np.ndarray:
+    """The frames an animation of `total` frames shows: at most max_frames, evenly spaced,
+    always with the last one and, for a prediction that diverged at frame k, frames k - 1 and
+    k (its last state and the divergence), which even spacing could skip."""
+    count = min(max_frames, total)
+    shown = np.unique(np.linspace(0, total - 1, count).round().astype(int)).tolist()
+    kept = {total - 1}
+    wanted = [] if diverged_at is None else [diverged_at - 1, diverged_at]
+    for frame in wanted:
+        if not 0 <= frame < total:
+            continue
+        if frame not in shown:
+            # Replace the nearest frame not already kept, so the count stays within the cap.
+            free = [i for i, f in enumerate(shown) if f not in kept]
+            if not free:
+                break
+            shown[min(free, key=lambda i: abs(shown[i] - frame))] = frame
+        kept.add(frame)
+    return np.array(sorted(shown))
 
 
 def _write_mp4(images: list[Image.Image], path: str | os.PathLike[str], fps: float) -> str | None:
@@ -300,8 +425,9 @@ def animation(
     """Ground truth and prediction side by side, coloured by particle type, as a GIF (and an
     MP4 when mp4_path is given and ffmpeg exists). truth and predicted: (T, N, D) whole
     sequences (history included: frames before `first_predicted` are marked as given); 3D is
-    shown as its x-y projection. At most max_frames frames, evenly spaced, always including the
-    last. Returns None, or why the MP4 was not written."""
+    shown as its x-y projection. A prediction that diverged (NaN from some frame on) is shown
+    up to there, then marked as diverged (see RolloutFigure). Frames: see animation_frames.
+    Returns None, or why the MP4 was not written."""
     truth, predicted = np.asarray(truth), np.asarray(predicted)
     if truth.ndim != 3 or truth.shape != predicted.shape or truth.shape[2] < 2:
         raise ValueError(
@@ -310,11 +436,9 @@ def animation(
         )
     if isinstance(max_frames, bool) or not isinstance(max_frames, int) or max_frames < 1:
         raise ValueError(f"max_frames must be a positive integer, got {max_frames!r}")
-    count = min(max_frames, truth.shape[0])
-    frames = np.unique(np.linspace(0, truth.shape[0] - 1, count).round().astype(int))
-    images = _frame_images(
-        truth, predicted, particle_type, bounds, titles, frames, first_predicted, dt
-    )
+    figure = RolloutFigure(truth, predicted, particle_type, bounds, titles, first_predicted, dt)
+    frames = animation_frames(truth.shape[0], max_frames, figure.diverged_at)
+    images = [figure.draw(t) for t in frames.tolist()]
     palette = [image.quantize(colors=64, method=Image.Quantize.MEDIANCUT) for image in images]
     with atomic_file(gif_path) as tmp, open(tmp, "wb") as f:
         palette[0].save(

@@ -21,7 +21,13 @@ on every k-th predicted frame only (k = `every`), and "@h" for them is the mean 
 evaluated frames among the first h. Time is wall-clock seconds per simulated frame (one frame
 = the dataset's dt), the mean over every frame of every trajectory.
 
-Output folder:
+A learned rollout that diverges (gns.rollout stops it) scores inf from there on: its row says
+where (status, diverged_at_step), the figures mark its last finite point with an x, and the
+animation and VTK files show it up to that frame. The report opens with a conclusion computed
+from the table (`conclusion`).
+
+Output folder (written under a temporary name beside it and renamed when complete, replacing an
+earlier report there; nothing is written before every argument has been checked):
   report.md, report.html      the report, embedding the figures below
   table.md, table.csv, table.json
                               the table (CSV and JSON parse back to the same rows)
@@ -34,6 +40,7 @@ Output folder:
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import datetime
@@ -46,7 +53,8 @@ import platform
 import shutil
 import sys
 import time
-from collections.abc import Callable, Sequence
+import uuid
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -227,9 +235,13 @@ def score(
 
 @dataclass
 class Row:
-    """One method of the table. values: metric key -> mean over trajectories (inf: diverged;
-    missing: not computed); split: TIMING_PARTS -> seconds per frame (learned rows only), whose
-    sum is seconds_per_frame; curve, ot_curve: per-frame means for the error-over-time figure."""
+    """One method of the table. role: "learned" (a checkpoint), "mpm" (the reference simulator;
+    native: at the settings that made the data) or "baseline" (constant velocity). values:
+    metric key -> mean over trajectories (inf: diverged; missing: not computed); split:
+    TIMING_PARTS -> seconds per frame (learned rows only), whose sum is seconds_per_frame;
+    curve, ot_curve: per-frame means for the error-over-time figure; diverged: (trajectory,
+    step) of every rollout whose error stops being finite at that step (0-based: the step that
+    predicts frame C + 1 + step)."""
 
     method: str
     setting: str
@@ -242,13 +254,38 @@ class Row:
     curve: np.ndarray | None = None
     ot_curve: tuple[np.ndarray, np.ndarray] | None = None
     short: str = ""  # the label in the figures
+    role: str = "learned"
+    native: bool = False
+    diverged: list[tuple[int, int]] = field(default_factory=list)
 
-    def add_scores(self, scores: Sequence[dict[str, Any]]) -> None:
+    def add_scores(self, scores: Sequence[dict[str, Any]], trajectories: Sequence[int]) -> None:
+        """Means over the trajectories' scores (score's output, one per trajectory index)."""
         keys = list(dict.fromkeys(k for s in scores for k in s if "@" in k))
         self.values = {k: float(np.mean([s[k] for s in scores])) for k in keys}
         self.trajectories = len(scores)
         self.curve = np.mean([s["mse"] for s in scores], axis=0)
         self.ot_curve = (scores[0]["frames"], np.mean([s["ot"] for s in scores], axis=0))
+        # From the errors themselves rather than from the rollout's exception, so that any
+        # non-finite error marks the row, whatever made it.
+        self.diverged = [
+            (index, int(bad[0]))
+            for index, s in zip(trajectories, scores, strict=True)
+            if len(bad := np.flatnonzero(~np.isfinite(s["mse"])))
+        ]
+
+    @property
+    def diverged_at(self) -> int | None:
+        """The first step at which some trajectory's rollout diverged, or None."""
+        return min((step for _, step in self.diverged), default=None)
+
+    def divergence(self) -> str:
+        """Where the rollouts diverged, e.g. "trajectory 0 at step 3, trajectory 2 at step 40
+        (2 of 3 trajectories)"; empty when none did."""
+        if not self.diverged:
+            return ""
+        where = ", ".join(f"trajectory {i} at step {k}" for i, k in self.diverged)
+        of = _count(self.trajectories, "trajectory", "trajectories")
+        return f"{where} ({len(self.diverged)} of {of})"
 
 
 def table_columns(horizons: Sequence[int | None], steps: int) -> list[str]:
@@ -260,7 +297,17 @@ def table_columns(horizons: Sequence[int | None], steps: int) -> list[str]:
         if h is None or h <= steps
     ]
     parts = [f"{part}_ms" for part in TIMING_PARTS]
-    return ["method", "setting", "device", "ms_per_frame", *parts, *keys, "trajectories", "status"]
+    return [
+        "method",
+        "setting",
+        "device",
+        "ms_per_frame",
+        *parts,
+        *keys,
+        "trajectories",
+        "diverged_at_step",
+        "status",
+    ]
 
 
 def _record(row: Row, columns: Sequence[str]) -> dict[str, Any]:
@@ -276,6 +323,8 @@ def _record(row: Row, columns: Sequence[str]) -> dict[str, Any]:
             out[column] = getattr(row, column)
         elif column == "trajectories":
             out[column] = row.trajectories
+        elif column == "diverged_at_step":
+            out[column] = row.diverged_at
         elif column == "ms_per_frame":
             out[column] = finite(row.seconds_per_frame, 1e3)
         elif column.endswith("_ms"):
@@ -348,26 +397,20 @@ def _learned_row(
 
     step = state.get("step")
     simulator = simulator_from_checkpoint(state, device)
-    c = simulator.config.model.velocity_history
-    if c + 1 != history:
-        raise ValueError(
-            f"{checkpoint} reads C + 1 = {c + 1} input frames but the first checkpoint reads "
-            f"{history}; every row must predict the same frames, so report them separately"
-        )
     setting = f"{checkpoint.name} (step {step})" if step is not None else checkpoint.name
     say(f"rolling out {setting} on {len(trajectories)} trajectories")
     # One short untimed rollout first: the first call pays for lazy initialisation (allocator,
     # kernels), which is not the cost of simulating a frame.
     rollout(simulator, trajectories[0], num_steps=min(2, trajectories[0].num_frames - history))
-    scores, predictions, seconds, diverged = [], [], [], []
+    scores, predictions, seconds = [], [], []
     rollouts_dir.mkdir(parents=True, exist_ok=True)
     for index, trajectory in zip(indices, trajectories, strict=True):
         info = {"dataset": dataset_name, "split": split, "checkpoint": str(checkpoint)}
         try:
             result = rollout(simulator, trajectory, metadata=info)
         except RolloutDiverged as err:
+            # Its steps before the divergence; the NaN padding below scores the rest as inf.
             result = err.rollout
-            diverged.append(f"trajectory {index} at step {err.step}")
         save_rollout(rollouts_dir / f"rollout_{split}_{index}.npz", result)
         say(f"  trajectory {index}: {result.num_steps} steps rolled out; scoring")
         truth = trajectory.positions[history:]
@@ -384,15 +427,16 @@ def _learned_row(
         # Means, not medians: the parts' means add up to the mean total.
         row.split = {part: float(timings[i].mean()) for i, part in enumerate(TIMING_PARTS)}
         row.seconds_per_frame = float(timings.sum(axis=0).mean())
-    row.add_scores(scores)
-    if diverged:
+    row.add_scores(scores, indices)
+    if row.diverged:
         # gns.rollout stops at a non-finite position or at a particle far outside the domain.
-        row.status = "diverged (non-finite or escaped particles): " + ", ".join(diverged)
+        row.status = "diverged (non-finite or escaped particles): " + row.divergence()
     return row, predictions
 
 
 def _constant_velocity_row(
     trajectories: list[Any],
+    indices: list[int],
     history: int,
     kinematic_types: Sequence[int],
     horizons: Sequence[int | None],
@@ -410,10 +454,10 @@ def _constant_velocity_row(
         elapsed += time.perf_counter() - start
         frames += len(truth)
         scores.append(score(predicted, truth, ~kinematic, horizons, every))
-    row = Row("constant velocity", "x(t+1) = 2 x(t) - x(t-1)", "cpu, numpy")
+    row = Row("constant velocity", "x(t+1) = 2 x(t) - x(t-1)", "cpu, numpy", role="baseline")
     row.short = row.method
     row.seconds_per_frame = elapsed / frames
-    row.add_scores(scores)
+    row.add_scores(scores, indices)
     return row
 
 
@@ -429,61 +473,89 @@ def _generator(metadata: Any) -> dict[str, Any] | None:
     return entry if isinstance(entry, dict) and "preset" in entry and "seed" in entry else None
 
 
-def _mpm_rows(
-    metadata: Any,
-    split: str,
-    trajectories: list[Any],
-    indices: list[int],
-    history: int,
-    specs: Sequence[str],
-    kinematic_types: Sequence[int],
-    horizons: Sequence[int | None],
-    every: int,
-    say: Callable[[str], None],
-) -> tuple[list[Row], str | None]:
-    """The reference simulator's rows, or none and the reason."""
+@dataclass(frozen=True)
+class _MpmPlan:
+    """The MPM rows to make: the (scene, lattice seed) of every trajectory and the settings to
+    re-run them at, or no rows and the reason."""
+
+    scenes: list[tuple[Any, int]]
+    variants: list[MpmVariant]
+    reason: str | None = None
+
+
+def _mpm_plan(
+    metadata: Any, split: str, trajectories: list[Any], indices: list[int], specs: Sequence[str]
+) -> _MpmPlan:
+    """Check the MPM settings and find the scenes that made the data, before any rollout: a
+    bad --mpm must be refused at once, not after minutes of learned rollouts."""
     from gns import mpm
     from gns.generate import preset_scene
 
     generator = _generator(metadata)
     if generator is None:
-        return [], (
-            "MPM rows: this dataset was not written by `gns generate` (its metadata.json has "
-            "no generator entry naming preset, seed and draws), so the simulator that made it "
-            "cannot be re-run on the same scenes"
+        # No scenes to re-run, but the settings are still checked (against the defaults).
+        default = mpm.MpmScene([])
+        parse_mpm_variants(specs, default.grid, default.cfl)
+        return _MpmPlan(
+            [],
+            [],
+            "MPM rows: this dataset was not written by `gns generate` (its metadata.json has no "
+            "generator entry naming preset, seed and draws), so the simulator that made it "
+            "cannot be re-run on the same scenes",
         )
     draws = generator.get("draws", {}).get(split) or [0] * (max(indices) + 1)
     scenes = []
-    for index, trajectory in zip(indices, trajectories, strict=True):
+    for index in indices:
         scene, _, lattice_seed = preset_scene(
             generator["preset"], int(generator["seed"]), split, index, int(draws[index])
         )
+        scenes.append((scene, lattice_seed))
+    variants = parse_mpm_variants(specs, scenes[0][0].grid, scenes[0][0].cfl)
+    if not variants:
+        return _MpmPlan([], [])
+    for (scene, lattice_seed), index, trajectory in zip(scenes, indices, trajectories, strict=True):
         start = mpm.particles(scene, lattice_seed)["positions"].astype(np.float32)
         if start.shape != trajectory.positions[0].shape or not np.allclose(
             start, trajectory.positions[0], rtol=0, atol=1e-6
         ):
-            return [], (
+            return _MpmPlan(
+                [],
+                [],
                 f"MPM rows: preset {generator['preset']!r} (seed {generator['seed']}) no longer "
                 f"gives the initial particles of {split} trajectory {index} "
                 f"({start.shape[0]} particles vs {trajectory.n_particles}); this dataset was "
-                "made by another version of the presets and cannot be re-run"
+                "made by another version of the presets and cannot be re-run",
             )
-        scenes.append((scene, lattice_seed))
-    native = scenes[0][0]
-    variants = parse_mpm_variants(specs, native.grid, native.cfl)
+    return _MpmPlan(scenes, variants)
+
+
+def _mpm_rows(
+    plan: _MpmPlan,
+    trajectories: list[Any],
+    indices: list[int],
+    history: int,
+    kinematic_types: Sequence[int],
+    horizons: Sequence[int | None],
+    every: int,
+    say: Callable[[str], None],
+) -> list[Row]:
+    """The reference simulator's rows: each of the plan's settings on every trajectory."""
+    from gns import mpm
+
     threads = machine()["rust_threads"]
     rows = []
-    for variant in variants:
-        changed = [variant.apply(scene) for scene, _ in scenes]
+    for variant in plan.variants:
+        changed = [variant.apply(scene) for scene, _ in plan.scenes]
         grid, cfl = changed[0].grid, changed[0].cfl
         native = " (native)" if variant.native else ""
         setting = f"grid {grid} (dx {1 / grid:.3g}), cfl {cfl:g}{native}"
         device = f"cpu, {_count(threads, 'rust thread')}"
-        row = Row("MPM", setting, device, short=f"MPM grid {grid}, cfl {cfl:g}{native}")
+        short = f"MPM grid {grid}, cfl {cfl:g}{native}"
+        row = Row("MPM", setting, device, short=short, role="mpm", native=variant.native)
         say(f"MPM {setting}")
         scores, seconds, substeps, failures = [], [], [], []
         for (scene, lattice_seed), new, index, trajectory in zip(
-            scenes, changed, indices, trajectories, strict=True
+            plan.scenes, changed, indices, trajectories, strict=True
         ):
             start = mpm.particles(scene, lattice_seed)["positions"]
             moved = mpm.particles(new, lattice_seed)["positions"]
@@ -509,9 +581,9 @@ def _mpm_rows(
         else:
             row.seconds_per_frame = float(np.concatenate(seconds).mean())
             row.setting += f", {np.concatenate(substeps).mean():.1f} substeps/frame"
-            row.add_scores(scores)
+            row.add_scores(scores, indices)
         rows.append(row)
-    return rows, None
+    return rows
 
 
 # ----------------------------------------------------------------------------------- writing
@@ -595,12 +667,17 @@ def report(
     full rollout). every: OT and MMD on every k-th predicted frame. mpm: MPM settings (see
     parse_mpm_variants). animation_frames: frames in the GIF (0: no animation). vtk_every: VTK
     frame stride (0: no VTK files; default: at most about 100 frames, as ASCII VTK takes ~30
-    bytes per particle and frame). command, notes: shown in the report.
+    bytes per particle and frame). command, notes: shown in the report. out: default
+    RUN/report_SPLIT; it must be missing, empty or an earlier report, which the new one replaces
+    when it is complete (a failed report leaves `out` as it was).
     """
 
+    from gns.checkpoints import load_checkpoint
     from gns.data import open_dataset
     from gns.device import resolve_device
 
+    # Every argument is checked before the first rollout (they take minutes), and nothing is
+    # written until then either.
     started = time.perf_counter()
     say = _say(progress)
     info = machine()  # before the report's own work shows in the load average
@@ -615,9 +692,16 @@ def report(
     horizons = parse_horizons(list(horizons))
     if not checkpoints:
         raise ValueError("at least one checkpoint is needed")
+    out = (
+        Path(out) if out is not None else (run if run.is_dir() else run.parent) / f"report_{split}"
+    )
+    _check_output(out)
+    torch_device = resolve_device(device)
     dataset = open_dataset(data, split)
     if trajectories is not None and not (
-        isinstance(trajectories, int) and 1 <= trajectories <= len(dataset)
+        isinstance(trajectories, int)
+        and not isinstance(trajectories, bool)
+        and 1 <= trajectories <= len(dataset)
     ):
         raise ValueError(
             f"trajectories must be between 1 and {len(dataset)} (the {split} split's size), "
@@ -625,19 +709,18 @@ def report(
         )
     indices = list(range(trajectories or len(dataset)))
     chosen = list(dict.fromkeys(_checkpoint(run, which) for which in checkpoints))
-    out = (
-        Path(out) if out is not None else (run if run.is_dir() else run.parent) / f"report_{split}"
-    )
-    out.mkdir(parents=True, exist_ok=True)
-    torch_device = resolve_device(device)
     kinematic_types = sorted(dataset.metadata.kinematic_particle_types)
     items = [dataset[i] for i in indices]
-
-    from gns.checkpoints import load_checkpoint
-
+    plan = _mpm_plan(dataset.metadata, split, items, indices, mpm)
     # Each file read and CRC-checked once, here.
     states = [load_checkpoint(path) for path in chosen]
     history = states[0]["config"]["model"]["velocity_history"] + 1
+    for path, state in zip(chosen, states, strict=True):
+        if (reads := state["config"]["model"]["velocity_history"] + 1) != history:
+            raise ValueError(
+                f"{path} reads C + 1 = {reads} input frames but the first checkpoint reads "
+                f"{history}; every row must predict the same frames, so report them separately"
+            )
     steps = min(t.num_frames for t in items) - history
     if steps < 1:
         raise ValueError(
@@ -650,111 +733,169 @@ def report(
             "); horizon means over them would mix different frames"
         )
 
-    rows: list[Row] = []
-    predictions: list[np.ndarray] = []
-    stems = [
-        p.stem if [q.stem for q in chosen].count(p.stem) == 1 else f"{k}_{p.stem}"
-        for k, p in enumerate(chosen)
-    ]
-    for path, state, stem in zip(chosen, states, stems, strict=True):
-        row, predicted = _learned_row(
-            path,
-            state,
-            items,
-            indices,
-            history,
-            kinematic_types,
-            horizons,
-            every,
-            torch_device,
-            out / "rollouts" / stem,
-            split,
-            str(data),
-            say,
+    with _output_folder(out) as folder:
+        rows: list[Row] = []
+        predictions: list[np.ndarray] = []
+        stems = [
+            p.stem if [q.stem for q in chosen].count(p.stem) == 1 else f"{k}_{p.stem}"
+            for k, p in enumerate(chosen)
+        ]
+        for path, state, stem in zip(chosen, states, stems, strict=True):
+            row, predicted = _learned_row(
+                path,
+                state,
+                items,
+                indices,
+                history,
+                kinematic_types,
+                horizons,
+                every,
+                torch_device,
+                folder / "rollouts" / stem,
+                split,
+                str(data),
+                say,
+            )
+            rows.append(row)
+            if not predictions:
+                predictions = predicted
+        left_out: list[str] = []
+        if plan.reason:
+            left_out.append(plan.reason)
+        elif not plan.variants:
+            left_out.append("MPM rows: none asked for (--mpm none)")
+        else:
+            say("MPM rows")
+            rows += _mpm_rows(plan, items, indices, history, kinematic_types, horizons, every, say)
+            left_out.append(
+                "MPM with fewer particles: its particles would not be the data's, so MSE "
+                "(particle i against particle i) could not be computed; only coarser grids and "
+                "fewer substeps are compared"
+            )
+        say("constant-velocity baseline")
+        rows.append(
+            _constant_velocity_row(items, indices, history, kinematic_types, horizons, every)
         )
-        rows.append(row)
-        if not predictions:
-            predictions = predicted
-    left_out: list[str] = []
-    say("MPM rows")
-    mpm_rows, reason = _mpm_rows(
-        dataset.metadata, split, items, indices, history, mpm, kinematic_types, horizons, every, say
-    )
-    rows += mpm_rows
-    if reason:
-        left_out.append(reason)
-    elif not mpm_rows:
-        left_out.append("MPM rows: none asked for (--mpm none)")
-    else:
-        left_out.append(
-            "MPM with fewer particles: its particles would not be the data's, so MSE (particle "
-            "i against particle i) could not be computed; only coarser grids and fewer "
-            "substeps are compared"
+        columns = table_columns(horizons, steps)
+        dropped = [h for h in horizons if h is not None and h > steps]
+        if dropped:
+            left_out.append(
+                f"horizons {dropped}: longer than the {steps} predicted frames of these "
+                "trajectories"
+            )
+
+        files = _write_tables(folder, rows, columns)
+        say("figures")
+        files.update(_write_figures(folder, rows, horizons, steps, history))
+        first = items[0]
+        files.update(
+            _write_media(
+                folder,
+                first,
+                indices[0],
+                predictions[0],
+                history,
+                split,
+                dataset.metadata,
+                rows[0].short,
+                animation_frames,
+                vtk_every,
+                left_out,
+                say,
+            )
         )
-    say("constant-velocity baseline")
-    rows.append(_constant_velocity_row(items, history, kinematic_types, horizons, every))
-    columns = table_columns(horizons, steps)
-    dropped = [h for h in horizons if h is not None and h > steps]
-    if dropped:
-        left_out.append(
-            f"horizons {dropped}: longer than the {steps} predicted frames of these trajectories"
+        context = {
+            "command": command,
+            "run": str(run),
+            "data": str(data),
+            "dataset": _dataset_name(data, dataset.metadata),
+            "split": split,
+            "checkpoints": [str(p) for p in chosen],
+            "trajectories": indices,
+            "particles": sorted({t.n_particles for t in items}),
+            "frames": first.num_frames,
+            "history": history,
+            "horizons": list(horizons),
+            "steps": steps,
+            "every": every,
+            "dt": dataset.metadata.dt,
+            "machine": info,
+            "device": str(torch_device),
+            "seconds": time.perf_counter() - started,
+            "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "notes": list(notes),
+            "left_out": left_out,
+            "conclusion": conclusion(rows, columns, steps),
+        }
+        _write_json(
+            folder / "table.json",
+            {"columns": columns, "rows": [_record(r, columns) for r in rows], "context": context},
+        )
+        files["json"] = folder / "table.json"
+        markdown = _markdown_report(rows, columns, files, context, folder)
+        write_bytes_atomic(folder / "report.md", markdown.encode("utf-8"))
+        write_bytes_atomic(
+            folder / "report.html",
+            _html_report(rows, columns, files, context, folder).encode("utf-8"),
+        )
+        files.update(markdown=folder / "report.md", html=folder / "report.html")
+    say(f"wrote {out / 'report.md'} in {context['seconds']:.0f} s")
+    files = {role: out / path.relative_to(folder) for role, path in files.items()}
+    return ReportResult(out, rows, files, left_out)
+
+
+# Files that only a report folder holds: an existing `out` with one of them may be replaced.
+_REPORT_MARKERS = ("table.json", "report.md")
+
+
+def _check_output(out: Path) -> None:
+    """Refuse an `out` that is neither missing, empty nor an earlier report, before any work:
+    the finished report replaces the whole folder."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ValueError(f"{out} exists and is not a folder; choose another --out")
+    if any(out.iterdir()) and not any((out / name).is_file() for name in _REPORT_MARKERS):
+        raise ValueError(
+            f"{out} exists, is not empty and is not a gns report folder (no "
+            f"{' or '.join(_REPORT_MARKERS)}); choose another --out"
         )
 
-    files = _write_tables(out, rows, columns)
-    say("figures")
-    files.update(_write_figures(out, rows, horizons, steps, history))
-    first = items[0]
-    files.update(
-        _write_media(
-            out,
-            first,
-            indices[0],
-            predictions[0],
-            history,
-            split,
-            dataset.metadata,
-            rows[0].short,
-            animation_frames,
-            vtk_every,
-            left_out,
-            say,
-        )
-    )
-    context = {
-        "command": command,
-        "run": str(run),
-        "data": str(data),
-        "dataset": _dataset_name(data, dataset.metadata),
-        "split": split,
-        "checkpoints": [str(p) for p in chosen],
-        "trajectories": indices,
-        "particles": sorted({t.n_particles for t in items}),
-        "frames": first.num_frames,
-        "history": history,
-        "horizons": list(horizons),
-        "steps": steps,
-        "every": every,
-        "dt": dataset.metadata.dt,
-        "machine": info,
-        "device": str(torch_device),
-        "seconds": time.perf_counter() - started,
-        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        "notes": list(notes),
-        "left_out": left_out,
-    }
-    _write_json(
-        out / "table.json",
-        {"columns": columns, "rows": [_record(r, columns) for r in rows], "context": context},
-    )
-    files["json"] = out / "table.json"
-    markdown = _markdown_report(rows, columns, files, context, out)
-    write_bytes_atomic(out / "report.md", markdown.encode("utf-8"))
-    write_bytes_atomic(
-        out / "report.html", _html_report(rows, columns, files, context, out).encode("utf-8")
-    )
-    files.update(markdown=out / "report.md", html=out / "report.html")
-    say(f"wrote {out / 'report.md'} in {context['seconds']:.0f} s")
-    return ReportResult(out, rows, files, left_out)
+
+@contextlib.contextmanager
+def _output_folder(out: Path) -> Iterator[Path]:
+    """A new temporary folder beside `out` to write the report into. On success it takes the
+    place of `out` (and of an earlier report there); on failure it is removed, with any parent
+    folders made for it, so a failed report leaves no empty or half-written folder behind."""
+    made = [parent for parent in out.parents if not parent.exists()]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # Not tempfile.mkdtemp: its folders are private (0700), and this one becomes the report.
+    while True:
+        folder = out.parent / f".{out.name}.{uuid.uuid4().hex[:8]}.tmp"
+        try:
+            folder.mkdir()
+            break
+        except FileExistsError:
+            continue
+    try:
+        yield folder
+        if out.exists():
+            old = folder.with_suffix(".old")
+            os.replace(out, old)
+            try:
+                os.replace(folder, out)
+            except BaseException:
+                os.replace(old, out)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(folder, out)
+    except BaseException:
+        shutil.rmtree(folder, ignore_errors=True)
+        for parent in made:  # innermost first; only if still empty
+            with contextlib.suppress(OSError):
+                parent.rmdir()
+        raise
 
 
 def _checkpoint(run: Path, which: str) -> Path:
@@ -800,6 +941,7 @@ def _write_figures(
             r.values,
             None if r.curve is None else (np.arange(len(r.curve)), r.curve),
             r.ot_curve,
+            r.diverged_at,
         )
         for r in rows
     ]
@@ -821,18 +963,20 @@ def _write_media(
     metadata: Any,
     label: str,
     animation_frames: int,
-    vtk_every: int,
+    vtk_every: int | None,
     left_out: list[str],
     say: Callable[[str], None],
 ) -> dict[str, Path]:
     """The animation and VTK files of one trajectory and the first checkpoint's prediction
-    (`label`: the row's, e.g. "GNS best.pt (step 2000)")."""
-    from gns.plots import animation
+    (`label`: the row's, e.g. "GNS best.pt (step 2000)"), both up to the frame where the
+    prediction diverged, if it did."""
+    from gns.plots import animation, diverged_frame
     from gns.vtk import write_series
 
     files: dict[str, Path] = {}
     truth = trajectory.positions
     whole = np.concatenate([truth[:history], predicted]).astype(np.float32)
+    stop = diverged_frame(whole)
     if trajectory.dim not in (2, 3):
         left_out.append(f"animation and VTK: {trajectory.dim}D positions")
         return files
@@ -865,8 +1009,7 @@ def _write_media(
     if vtk_every:
         say(f"VTK files (every {vtk_every} frame{'s' * (vtk_every > 1)})")
         folder = out / "vtk"
-        shutil.rmtree(folder, ignore_errors=True)  # frames of an earlier report would linger
-        finite = int(np.isfinite(whole).all(axis=(1, 2)).sum())
+        finite = len(whole) if stop is None else stop
         types = {"particle_type": trajectory.particle_type.astype(np.int32)}
         files["vtk_truth"] = write_series(
             folder, "ground_truth", truth, dt=metadata.dt, every=vtk_every, point_data=types
@@ -881,17 +1024,160 @@ def _write_media(
             point_data=types,
             frame_data={"error": error},
         )
+        if stop is not None:
+            left_out.append(
+                f"VTK prediction after frame {stop - 1}: the prediction diverged at frame {stop}"
+            )
     else:
         left_out.append("VTK files: not asked for")
     return files
+
+
+# ---------------------------------------------------------------------------------- conclusion
+
+
+def _times(ratio: float) -> str:
+    return f"{ratio:.1f}x" if ratio < 9.95 else f"{ratio:,.0f}x"
+
+
+def _ms(seconds: float) -> str:
+    ms = seconds * 1e3
+    return f"{ms:#.2g} ms" if ms < 10 else f"{ms:,.0f} ms"
+
+
+def _mse_against(mse: float, other: float, name: str) -> str:
+    """How an MSE compares with `other`, the MSE of `name`: "3.0x lower MSE than X"."""
+    if mse == other:
+        return f"the same MSE as {name}"
+    direction = "lower" if mse < other else "higher"
+    if min(mse, other) == 0:  # no ratio to an exact result
+        return f"{direction} MSE than {name} ({_format(mse)} against {_format(other)})"
+    return f"{_times(max(mse, other) / min(mse, other))} {direction} MSE than {name}"
+
+
+def _speed_against(seconds: float, other: float, name: str) -> str:
+    """How a time per frame compares with `other`, that of `name`: "3.1x faster than X"."""
+    if seconds == other:
+        return f"as fast as {name}"
+    direction = "faster" if seconds < other else "slower"
+    return f"{_times(max(seconds, other) / min(seconds, other))} {direction} than {name}"
+
+
+def _horizon_phrase(key: str, steps: int) -> str:
+    h = key.split("@", 1)[1]
+    if h == "full":
+        return f"the full {steps}-frame rollouts"
+    return "the first predicted frame" if h == "1" else f"the first {h} predicted frames"
+
+
+def _finite(row: Row, key: str) -> float | None:
+    value = row.values.get(key)
+    return value if value is not None and math.isfinite(value) else None
+
+
+def _lowest(rows: Sequence[Row], key: str) -> Row | None:
+    """The row of lowest finite value at `key` (the first of equals), or None."""
+    scored = [r for r in rows if _finite(r, key) is not None]
+    return min(scored, key=lambda r: r.values[key]) if scored else None
+
+
+def conclusion(rows: Sequence[Row], columns: Sequence[str], steps: int) -> list[str]:
+    """The table in plain words, computed from it: how the best learned row compares with
+    constant velocity over the longest horizon and at what cost against the reference simulator
+    at its native settings, which method has the lowest MSE at each horizon, how the learned
+    model compares with the cheaper MPM settings, and which learned rows diverged. One sentence
+    a list entry; true for any outcome (a learned model worse than the baseline, every learned
+    row diverged, no MPM rows)."""
+    keys = [c for c in columns if c.startswith("mse@")]
+    learned = [r for r in rows if r.role == "learned"]
+    baseline = next((r for r in rows if r.role == "baseline"), None)
+    reference = next((r for r in rows if r.native), None)
+    cheaper = [r for r in rows if r.role == "mpm" and not r.native]
+    if not keys or baseline is None:
+        return []
+    sentences = []
+    key = keys[-1]  # the longest horizon: what a simulator is for
+    horizon = _horizon_phrase(key, steps)
+    best = _lowest(learned, key)
+    if best is None:
+        sentences.append(
+            f"Over {horizon} no learned model has a finite MSE (every one diverged, see below); "
+            f"constant velocity's is {_format(baseline.values.get(key))}."
+        )
+    else:
+        sentence = (
+            f"Over {horizon} {best.short} has "
+            f"{_mse_against(best.values[key], baseline.values[key], 'constant velocity')} "
+            f"({_format(best.values[key])} against {_format(baseline.values[key])})"
+        )
+        if best.seconds_per_frame is not None:
+            sentence += f" at {_ms(best.seconds_per_frame)} per frame"
+            if reference is not None and reference.seconds_per_frame is not None:
+                sentence += ", " + _speed_against(
+                    best.seconds_per_frame,
+                    reference.seconds_per_frame,
+                    "the reference simulator at its native settings",
+                )
+                sentence += f" ({_ms(reference.seconds_per_frame)})"
+        if reference is None:
+            sentence += "; the reference simulator was not run (see Left out)"
+        elif reference.seconds_per_frame is None:
+            sentence += "; the reference simulator failed at its native settings (see status)"
+        sentences.append(sentence + ".")
+
+    winners = []
+    for k in keys:
+        # The native MPM is the ground truth itself (error 0): not a contender.
+        winner = _lowest([r for r in rows if not r.native], k)
+        if winner is None:
+            continue
+        text = f"{_horizon_phrase(k, steps)}: {winner.short}"
+        if winner.role == "learned":
+            text += f", {_mse_against(winner.values[k], baseline.values[k], 'constant velocity')}"
+        elif (runner_up := _lowest(learned, k)) is not None:
+            text += f", {_mse_against(winner.values[k], runner_up.values[k], runner_up.short)}"
+        else:
+            text += " (every learned model had diverged)"
+        winners.append(text)
+    if winners:
+        left = ", leaving out the MPM at its native settings (it is the ground truth)"
+        sentences.append(
+            f"Lowest MSE{left if reference is not None else ''}: " + "; ".join(winners) + "."
+        )
+
+    if best is not None and cheaper:
+        against = []
+        for row in cheaper:
+            value = _finite(row, key)
+            if value is None or row.seconds_per_frame is None:
+                against.append(f"{row.short} did not finish (see its status)")
+                continue
+            text = f"{_mse_against(best.values[key], value, row.short)} ({_format(value)}"
+            text += f" at {_ms(row.seconds_per_frame)} per frame"
+            if best.seconds_per_frame is not None:
+                text += ", " + _speed_against(best.seconds_per_frame, row.seconds_per_frame, "it")
+            against.append(text + ")")
+        sentences.append(
+            f"Against the reference simulator at cheaper settings over {horizon}, "
+            f"{best.short} has " + "; ".join(against) + "."
+        )
+
+    diverged = [r for r in learned if r.diverged]
+    for row in diverged:
+        sentences.append(
+            f"{row.short} diverged: {row.divergence()}; its later frames count as infinitely wrong."
+        )
+    if learned and not diverged:
+        sentences.append("No learned rollout diverged.")
+    return sentences
 
 
 def _relative(path: Path, out: Path) -> str:
     return os.path.relpath(path, out)
 
 
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}{'s' if n != 1 else ''}"
+def _count(n: int, noun: str, plural: str | None = None) -> str:
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"
 
 
 def _context_lines(context: dict[str, Any]) -> list[str]:
@@ -943,7 +1229,10 @@ def _method_lines(context: dict[str, Any]) -> list[str]:
         "the total; one untimed warm-up rollout first). MPM: the whole frame (substeps, "
         "transfers). Constant velocity: the numpy extrapolation.",
         "- A value of 0 is exact (the deterministic simulator reproducing its own data); "
-        "`inf` means the rollout diverged; `n/a`: not computed (see status).",
+        "`inf` means the rollout diverged before the end of that horizon; `n/a`: not computed "
+        "(see status). A diverged row's status (and table.csv's diverged_at_step) gives the "
+        f"rollout step it diverged at (step k predicts frame {h} + k); the figures mark its "
+        "last finite point with an x.",
     ]
 
 
@@ -958,9 +1247,10 @@ def _markdown_report(
     context: dict[str, Any],
     out: Path,
 ) -> str:
-    lines = [
-        f"# {_title(context)}",
-        "",
+    lines = [f"# {_title(context)}", ""]
+    if context["conclusion"]:
+        lines += ["**In short.** " + " ".join(context["conclusion"]), ""]
+    lines += [
         *_context_lines(context),
         "",
         f"![error against run time]({_relative(files['error_vs_time'], out)})",
@@ -1033,6 +1323,11 @@ def _html_report(
         "table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #ccc;"
         "padding:3px 6px}</style></head><body>"
         f"<h1>{e(_title(context))}</h1>"
+        + (
+            f"<p><b>In short.</b> {e(' '.join(context['conclusion']))}</p>"
+            if context["conclusion"]
+            else ""
+        )
         + items(_context_lines(context))
         + f'<p><img src="{e(_relative(files["error_vs_time"], out))}" alt="error against run time" '
         'style="max-width:100%"></p>'
