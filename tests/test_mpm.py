@@ -66,6 +66,11 @@ def test_sand_column_collapse_runout_grows_with_aspect_ratio_and_the_slope_follo
         assert phi - 10.0 < slope < phi, (phi, slope)
 
 
+# The parameters are plain names, so collection never reads ../shared: a fresh clone without it
+# skips these four with the reason below instead of failing on a missing file.
+@pytest.mark.skipif(
+    not (SAND2D / "manifest.json").is_file(), reason="../shared/data/sand2d-taichi not present"
+)
 @pytest.mark.parametrize("name", ["sand_00.npz", "sand_13.npz", "sand_30.npz", "sand_44.npz"])
 def test_sand_matches_the_independent_taichi_run_it_copies(name):
     """The same block, velocity, friction angle and wall friction as a trajectory of the real

@@ -5,6 +5,7 @@
     compute_statistics          -> per-frame velocity / acceleration statistics
     validate_dataset            -> every problem found in a dataset
     convert                     -> the dataset in another layout, written atomically
+    write_dataset               -> a dataset folder from one's own arrays, written atomically
 
 Nothing here imports gns._core: the readers are plain Python + numpy + h5py.
 """
@@ -27,6 +28,7 @@ from gns.data.windows import (
     training_windows,
     trajectory_windows,
 )
+from gns.data.write import write_dataset
 
 __all__ = [
     "INPUT_SEQUENCE_LENGTH",
@@ -51,4 +53,5 @@ __all__ = [
     "trajectory_windows",
     "training_windows",
     "validate_dataset",
+    "write_dataset",
 ]

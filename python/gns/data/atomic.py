@@ -44,6 +44,10 @@ def atomic_folder(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise FileExistsError(f"{target}: exists and is not an empty folder")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    # mkdtemp makes the folder private (0700); the finished one gets the usual permissions.
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp.chmod(0o777 & ~umask)
     try:
         yield tmp
         os.replace(tmp, target)
