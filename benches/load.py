@@ -15,10 +15,13 @@ measurement (not pinned: the scheduler places it, as a user's other program woul
 The model: the demo's GNS-3-32 (latent 32, 3 message-passing steps) and the paper's GNS-10-128,
 untrained but with a zero output layer, so the particles keep their lattice and every step
 has the same graph: 1100 particles on the WaterDrop-sized lattice of benches/step.py.
-Per row: the median and the mean ms per rollout step (gns.rollout's own timing, graph to
-integration) over `reps` rollouts of `steps` steps after one unmeasured rollout (the mean
-includes whatever re-probing the tuner did); "x before" is the "before" row's median over this
-row's in the same condition; "ran with" is the threads and precision of the last rollout.
+Per measurement: the median and the mean ms per rollout step (gns.rollout's own timing, graph
+to integration) over `reps` rollouts of `steps` steps after one unmeasured rollout (the mean
+includes whatever re-probing the tuner did). This VM's speed drifts by 20-40% within minutes,
+so the policies are measured in turn, `rounds` times in a rotating order, and each cell is the
+median over the rounds with their range; "x before" is the "before" row's median over this
+row's in the same condition; "ran with" is the threads and precision of the last rollout of
+each round (several when the rounds differed).
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--particles", type=int, help="lattice size (default 1100, quick 200)")
     p.add_argument("--steps", type=int, help="steps per rollout (default 40, quick 6)")
     p.add_argument("--reps", type=int, help="measured rollouts (default 3, quick 1)")
+    p.add_argument("--rounds", type=int, help="turns through the policies (default 3, quick 1)")
     p.add_argument("--policies", nargs="+", choices=list(POLICIES), default=list(POLICIES))
     p.add_argument("--conditions", nargs="+", choices=["idle", "busy"], default=["idle", "busy"])
     p.add_argument("--child", help=argparse.SUPPRESS)  # one measurement, as JSON
@@ -56,6 +60,7 @@ def parse_args() -> argparse.Namespace:
     args.particles = args.particles or (200 if args.quick else 1100)
     args.steps = args.steps or (6 if args.quick else 40)
     args.reps = args.reps or (1 if args.quick else 3)
+    args.rounds = args.rounds or (1 if args.quick else 3)
     return args
 
 
@@ -117,6 +122,22 @@ def measure(args: argparse.Namespace, model: str, policy: str) -> dict:
     return json.loads(run.stdout.strip().splitlines()[-1])
 
 
+def summary(runs: list[dict]) -> dict:
+    """One cell from the rounds: the median of their medians, its range, the mean of their
+    means, and what they ran with."""
+    import statistics
+
+    medians = [r["median"] for r in runs]
+    ran = dict.fromkeys(f"{r['threads']} thr. {r['precision']}" for r in runs)
+    return {
+        "median": statistics.median(medians),
+        "low": min(medians),
+        "high": max(medians),
+        "mean": statistics.mean(r["mean"] for r in runs),
+        "ran": " / ".join(ran),
+    }
+
+
 def busy_core() -> subprocess.Popen:
     """Another program holding one core for as long as it runs."""
     return subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -130,19 +151,24 @@ def main() -> None:
     from gns.machine import cpu_name
 
     print(f"{cpu_name()}, {os.cpu_count()} CPUs; {args.particles} particles on the lattice, "
-          f"{args.reps} rollouts of {args.steps} steps per row; ms per rollout step")  # fmt: skip
-    results: dict[tuple[str, str, str], dict] = {}
+          f"{args.reps} rollouts of {args.steps} steps per measurement, {args.rounds} rounds; "
+          "ms per rollout step")  # fmt: skip
+    rounds: dict[tuple[str, str, str], list[dict]] = {}
     for condition in args.conditions:
         spinner = busy_core() if condition == "busy" else None
         try:
             time.sleep(0.5 if spinner else 0.0)
             for model in args.models:
-                for policy in args.policies:
-                    results[condition, model, policy] = measure(args, model, policy)
+                for turn in range(args.rounds):
+                    shift = turn % len(args.policies)
+                    for policy in args.policies[shift:] + args.policies[:shift]:
+                        key = (condition, model, policy)
+                        rounds.setdefault(key, []).append(measure(args, model, policy))
         finally:
             if spinner is not None:
                 spinner.kill()
                 spinner.wait()
+    results = {key: summary(runs) for key, runs in rounds.items()}
     header = ["model", "policy"]
     for condition in args.conditions:
         header += [f"{condition} median", "mean", "x before", "ran with"]
@@ -155,8 +181,8 @@ def main() -> None:
                 r = results[condition, model, policy]
                 before = results.get((condition, model, "before"))
                 ratio = f"{before['median'] / r['median']:.2f}" if before else "-"
-                threads = f"{r['threads']} thr. {r['precision']}"
-                cells += [f"{r['median']:.2f}", f"{r['mean']:.2f}", ratio, threads]
+                spread = f"{r['median']:.2f} ({r['low']:.2f}-{r['high']:.2f})"
+                cells += [spread, f"{r['mean']:.2f}", ratio, r["ran"]]
             print("| " + " | ".join(cells) + " |", flush=True)
 
 

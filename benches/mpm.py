@@ -1,6 +1,6 @@
 """Speed of the reference simulator (gns.mpm, 2D MLS-MPM in Rust) and calibration of the presets.
 
-    python benches/mpm.py [--quick] [--threads 1 2] [--frames 10] [--warmup 3]
+    python benches/mpm.py [--quick] [--threads 1 2 auto] [--busy] [--frames 10] [--warmup 3]
     python benches/mpm.py --calibrate [--trajectories 16] [--workers 1]
 
 Speed: a dam break, one block 0.4 wide and 0.5 high in the bottom-left corner of the walls
@@ -10,7 +10,8 @@ same scene would be; the substep count grows with it through the CFL bound. Per 
 ms per frame (median over --frames frames after --warmup frames; perf_counter in Rust around
 each frame), substeps per frame (mean over the timed frames) and ns per particle-substep. Each
 thread count runs in its own subprocess with RAYON_NUM_THREADS set, because rayon's global pool
-is sized once, at its first use.
+is sized once, at its first use; "auto" leaves it unset, so every frame runs on all cores or on
+one, whichever gns.mpm.simulate timed faster. --busy keeps one core busy with another process.
 
 Calibration: generates --trajectories train trajectories of the `waterdrop` and `sand` presets
 with gns.generate (frame counts of the presets, seed 0) and prints their per-frame velocity and
@@ -44,7 +45,14 @@ PAPER = {
 def parse_args() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--quick", action="store_true", help="smaller sizes, fewer frames (smoke test)")
-    p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="rayon thread counts")
+    p.add_argument(
+        "--threads",
+        nargs="+",
+        default=["1", "2"],
+        help="rayon thread counts, or auto: the pool of all cores with each frame's threads "
+        "chosen by timing the frames (gns.mpm.simulate's default)",
+    )
+    p.add_argument("--busy", action="store_true", help="with another process spinning on one core")
     p.add_argument("--frames", type=int, help="timed frames per case (default 10; quick 3)")
     p.add_argument("--warmup", type=int, help="frames before timing (default 3; quick 1)")
     p.add_argument("--calibrate", action="store_true", help="preset statistics vs the paper's")
@@ -91,28 +99,39 @@ def speed(args: argparse.Namespace) -> None:
         for grid in sizes.values()
     ]
     rows = []
-    for threads in args.threads:
-        env = {**os.environ, "RAYON_NUM_THREADS": str(threads)}
-        done = subprocess.run(
-            [sys.executable, __file__, "--worker", json.dumps(cases)],
-            env=env,
-            capture_output=True,
-            text=True,
-        )
-        if done.returncode:
-            raise SystemExit(f"the {threads}-thread run failed:\n{done.stderr}")
-        rows += [{**json.loads(line), "threads": threads} for line in done.stdout.splitlines()]
+    # Another program holding a core, as on a user's busy machine.
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.busy else None
+    try:
+        for threads in args.threads:
+            env = dict(os.environ)
+            env.pop("RAYON_NUM_THREADS", None)
+            if threads != "auto":
+                env["RAYON_NUM_THREADS"] = threads
+            done = subprocess.run(
+                [sys.executable, __file__, "--worker", json.dumps(cases)],
+                env=env,
+                capture_output=True,
+                text=True,
+            )
+            if done.returncode:
+                raise SystemExit(f"the {threads}-thread run failed:\n{done.stderr}")
+            rows += [{**json.loads(line), "threads": threads} for line in done.stdout.splitlines()]
+    finally:
+        if spinner is not None:
+            spinner.kill()
+            spinner.wait()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(
         f"MLS-MPM dam break (block 0.4 x 0.5, 4 particles per cell), frame dt 2.5 ms; "
         f"median of {frames} frames after {warmup}; {os.cpu_count()} CPUs, load {load:.1f}"
+        + ("; one core busy with another process" if args.busy else "")
     )
     header = (
         f"{'material':<9} {'particles':>9} {'grid':>5} {'threads':>7} {'ms/frame':>9} "
         f"{'substeps':>8} {'ns/(p*substep)':>14} {'speed-up':>8}"
     )
     print(header)
-    base = {(r["material"], r["grid"]): r["ms_per_frame"] for r in rows if r["threads"] == 1}
+    base = {(r["material"], r["grid"]): r["ms_per_frame"] for r in rows if r["threads"] == "1"}
     for material in MATERIALS:
         for grid in sizes.values():
             for r in (r for r in rows if r["material"] == material and r["grid"] == grid):

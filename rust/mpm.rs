@@ -179,11 +179,21 @@ fn check_elastic(index: usize, e: f64, nu: f64) -> Result<()> {
     Ok(())
 }
 
+/// What a frame runs on: rayon's current pool (all its threads), or one thread.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Threads {
+    All,
+    One,
+}
+
 /// Runs `frames - 1` frames from the initial positions and velocities ((N, 2) row-major) of
 /// particles of the given materials (an index into `materials` per particle), each of volume
-/// `particle_volume` (the area it stands for: spacing^2 on a lattice). `progress` is called
-/// after every frame with its index; an error from it stops the run. A particle that becomes
-/// NaN or leaves the grid, or a frame that needs more than max_substeps, is an error naming the
+/// `particle_volume` (the area it stands for: spacing^2 on a lattice). `after_frame` is called
+/// after every frame with its index and its seconds, and says what the next frame runs on (the
+/// first runs on all threads): a caller can time the frames and move to one thread when
+/// another program holds a core and the pool's second thread stalls every parallel loop. The
+/// results do not depend on it. An error from it stops the run. A particle that becomes NaN or
+/// leaves the grid, or a frame that needs more than max_substeps, is an error naming the
 /// frame: the run is rejected.
 // The initial state is four parallel inputs; a struct for them would only be unpacked here.
 #[allow(clippy::too_many_arguments)]
@@ -195,7 +205,7 @@ pub fn simulate(
     material: &[u32],
     particle_volume: f64,
     frames: usize,
-    mut progress: impl FnMut(usize) -> Result<()>,
+    mut after_frame: impl FnMut(usize, f64) -> Result<Threads>,
 ) -> Result<Output> {
     let n = material.len();
     if frames == 0 {
@@ -217,17 +227,33 @@ pub fn simulate(
         substeps: Vec::with_capacity(frames - 1),
     };
     sim.record(&mut out.positions);
+    let mut threads = Threads::All;
+    let mut one_thread: Option<rayon::ThreadPool> = None;
     for frame in 1..frames {
         let start = Instant::now();
-        let substeps = sim.advance_frame().map_err(|e| match e {
+        let advanced = match threads {
+            Threads::All => sim.advance_frame(),
+            Threads::One => {
+                if one_thread.is_none() {
+                    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build();
+                    one_thread = Some(pool.map_err(|e| {
+                        Error::Value(format!("cannot start a one-thread pool: {e}"))
+                    })?);
+                }
+                let pool = one_thread.as_ref().expect("made above");
+                pool.install(|| sim.advance_frame())
+            }
+        };
+        let substeps = advanced.map_err(|e| match e {
             Error::Value(m) => Error::Value(format!("frame {frame}: {m}")),
             Error::NonFinite(m) => Error::NonFinite(format!("frame {frame}: {m}")),
             other => other,
         })?;
-        out.seconds.push(start.elapsed().as_secs_f64());
+        let seconds = start.elapsed().as_secs_f64();
+        out.seconds.push(seconds);
         out.substeps.push(substeps);
         sim.record(&mut out.positions);
-        progress(frame)?;
+        threads = after_frame(frame, seconds)?;
     }
     Ok(out)
 }
@@ -898,7 +924,7 @@ mod tests {
             &vec![0; n],
             1e-4,
             11,
-            |_| Ok(()),
+            |_, _| Ok(Threads::All),
         )
         .unwrap();
         let mean_y = |f: usize| {
@@ -928,7 +954,8 @@ mod tests {
         let x = block([0.3, 0.1], [0.25, 0.2], 0.006);
         let n = x.len() / 2;
         assert!(n > SPLIT_AT);
-        let run = |threads: usize| {
+        // Frames on every thread of a pool of `threads`, or alternating with one thread.
+        let run = |threads: usize, alternate: bool| {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
                 .build()
@@ -942,13 +969,18 @@ mod tests {
                     &vec![0; n],
                     6.4e-5,
                     6,
-                    |_| Ok(()),
+                    |frame, _| match alternate && frame % 2 == 1 {
+                        true => Ok(Threads::One),
+                        false => Ok(Threads::All),
+                    },
                 )
                 .unwrap()
                 .positions
             })
         };
-        assert_eq!(run(1), run(2));
+        let one = run(1, false);
+        assert_eq!(one, run(2, false));
+        assert_eq!(one, run(2, true));
     }
 
     #[test]
@@ -959,11 +991,21 @@ mod tests {
             model: Model::Water { bulk_modulus: 1e5 },
         }];
         let x = vec![0.5, 0.5];
-        let err = simulate(&s, &water, &x, &[0.0, 0.0], &[1], 1e-4, 2, |_| Ok(())).unwrap_err();
-        assert!(err.to_string().contains("material[0] = 1"), "{err}");
-        let err = simulate(&s, &water, &[0.0, 0.5], &[0.0, 0.0], &[0], 1e-4, 2, |_| {
-            Ok(())
+        let err = simulate(&s, &water, &x, &[0.0, 0.0], &[1], 1e-4, 2, |_, _| {
+            Ok(Threads::All)
         })
+        .unwrap_err();
+        assert!(err.to_string().contains("material[0] = 1"), "{err}");
+        let err = simulate(
+            &s,
+            &water,
+            &[0.0, 0.5],
+            &[0.0, 0.0],
+            &[0],
+            1e-4,
+            2,
+            |_, _| Ok(Threads::All),
+        )
         .unwrap_err();
         assert!(
             err.to_string().contains("outside the simulation domain"),
@@ -973,7 +1015,10 @@ mod tests {
             max_substeps: 2,
             ..Settings::default()
         };
-        let err = simulate(&tight, &water, &x, &[0.0, 0.0], &[0], 1e-4, 2, |_| Ok(())).unwrap_err();
+        let err = simulate(&tight, &water, &x, &[0.0, 0.0], &[0], 1e-4, 2, |_, _| {
+            Ok(Threads::All)
+        })
+        .unwrap_err();
         assert!(
             err.to_string()
                 .contains("frame 1: more than max_substeps = 2"),

@@ -477,12 +477,14 @@ fn mpm_material(
 }
 
 /// mpm_simulate(positions, velocities, material, materials, particle_volume, frames, *, grid,
-/// bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps, progress=None)
-/// -> (positions (frames, N, 2) float32, seconds (frames - 1,), substeps (frames - 1,))
+/// bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps, progress=None,
+/// threads=None) -> (positions (frames, N, 2) float32, seconds (frames - 1,), substeps
+/// (frames - 1,)). progress(frame) after every frame; threads(seconds) after every frame,
+/// returning 1 to run the next frame on one thread, anything else for all.
 #[pyfunction]
 #[pyo3(signature = (positions, velocities, material, materials, particle_volume, frames, *,
                     grid, bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps,
-                    progress=None))]
+                    progress=None, threads=None))]
 #[allow(clippy::too_many_arguments)]
 fn mpm_simulate(
     py: Python<'_>,
@@ -501,6 +503,7 @@ fn mpm_simulate(
     cfl: f64,
     max_substeps: usize,
     progress: Option<Py<PyAny>>,
+    threads: Option<Py<PyAny>>,
 ) -> PyResult<Py<PyAny>> {
     let materials = materials
         .into_iter()
@@ -550,16 +553,24 @@ fn mpm_simulate(
             ids,
             particle_volume,
             frames,
-            |frame| {
+            |frame, seconds| {
                 Python::attach(|py| {
                     let call = match &progress {
                         Some(f) => f.call1(py, (frame,)).map(|_| ()),
                         None => py.check_signals(),
                     };
-                    call.map_err(|e| {
-                        raised = Some(e);
-                        Error::Value("stopped by the progress callback".into())
-                    })
+                    let next = call.and_then(|()| match &threads {
+                        Some(f) => f.call1(py, (seconds,))?.extract::<i64>(py),
+                        None => Ok(0),
+                    });
+                    match next {
+                        Ok(1) => Ok(mpm::Threads::One),
+                        Ok(_) => Ok(mpm::Threads::All),
+                        Err(e) => {
+                            raised = Some(e);
+                            Err(Error::Value("stopped by a callback".into()))
+                        }
+                    }
                 })
             },
         )

@@ -76,9 +76,7 @@ class OnDevice(torch.Tensor):
     def __torch_dispatch__(cls, func, types, args=(), kwargs=None):  # type: ignore[override]
         kwargs = dict(kwargs or {})
         flat, _ = tree_flatten((args, kwargs))
-        host = [
-            t for t in flat if isinstance(t, torch.Tensor) and not isinstance(t, OnDevice)
-        ]
+        host = [t for t in flat if isinstance(t, torch.Tensor) and not isinstance(t, OnDevice)]
         for t in host:
             if t.device.type == STAND_IN.type:
                 raise RuntimeError(

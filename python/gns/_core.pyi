@@ -96,4 +96,5 @@ def mpm_simulate(
     cfl: float,
     max_substeps: int,
     progress: Callable[[int], object] | None = None,
+    threads: Callable[[float], int] | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64], npt.NDArray[np.uint32]]: ...

@@ -18,6 +18,7 @@ obstacles 3, kinematic).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -25,6 +26,7 @@ import numpy as np
 
 from gns import _core
 from gns.data.trajectory import Trajectory
+from gns.threads import StepTuner
 
 __all__ = [
     "Block",
@@ -206,6 +208,21 @@ def particles(scene: MpmScene, seed: int | None = None) -> dict[str, np.ndarray]
     }
 
 
+def _frame_threads() -> Callable[[float], int] | None:
+    """For mpm_simulate's threads: the thread count of each next frame, chosen by timing the
+    frames: 0 (all of rayon's) or 1. None when there is nothing to choose."""
+    if os.environ.get("RAYON_NUM_THREADS") or (os.cpu_count() or 1) == 1:
+        return None
+    tuner = StepTuner([0, 1], lambda threads: None)
+    tuner.begin()  # the first frame runs on all threads
+
+    def after_frame(seconds: float) -> int:
+        tuner.end(seconds)
+        return tuner.begin()
+
+    return after_frame
+
+
 def simulate(
     scene: MpmScene,
     frames: int,
@@ -215,7 +232,12 @@ def simulate(
 ) -> MpmResult:
     """Run `scene` for `frames` frames (frame 0 the initial state). A run that produces NaN,
     loses a particle out of the domain or needs more than max_substeps in a frame raises
-    ValueError naming the frame. `progress(frame)` is called after every frame."""
+    ValueError naming the frame. `progress(frame)` is called after every frame.
+
+    Each frame runs on all of rayon's threads or on one, whichever the frames run faster on
+    (gns.threads.StepTuner): with another program on one core, waiting for the pool's second
+    thread made sand frames 2-2.5x slower than one thread (benches/mpm.py on 2 cores). The
+    positions do not depend on it; RAYON_NUM_THREADS in the environment fixes the pool."""
     start = particles(scene, seed)
     core_materials = [m.core() for m in start["materials"]]  # type: ignore[attr-defined]
     if scene.obstacles:
@@ -236,6 +258,7 @@ def simulate(
         cfl=scene.cfl,
         max_substeps=scene.max_substeps,
         progress=progress,
+        threads=_frame_threads(),
     )
     context = None if scene.context is None else np.asarray(scene.context, np.float32)
     return MpmResult(positions, start["particle_type"], seconds, substeps, context)
