@@ -627,3 +627,13 @@ def test_the_animation_shows_a_diverged_prediction_up_to_where_it_diverged():
     assert len(frames) == 10 and {0, 46, 47, 99} <= set(frames)
     assert animation_frames(100, 10).tolist() == [0, 11, 22, 33, 44, 55, 66, 77, 88, 99]
     assert animation_frames(5, 10, diverged_at=3).tolist() == [0, 1, 2, 3, 4]
+
+
+def test_a_learned_rows_device_says_what_its_rollouts_ran_with():
+    from gns.report import _device_label
+
+    cpu = torch.device("cpu")
+    one = [{"torch_threads": 1, "precision": "fp32"}] * 2
+    assert _device_label(cpu, one) == "cpu, 1 torch thread, fp32"
+    mixed = [{"torch_threads": 2, "precision": "fp32"}, {"torch_threads": 1, "precision": "bf16"}]
+    assert _device_label(cpu, mixed) == "cpu, 1-2 torch threads, bf16, fp32"

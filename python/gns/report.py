@@ -366,12 +366,19 @@ def _kinematic(particle_type: np.ndarray, kinematic_types: Sequence[int]) -> np.
     return np.isin(particle_type, list(kinematic_types))
 
 
-def _device_label(device: Any) -> str:
+def _device_label(device: Any, ran: Sequence[dict[str, Any]]) -> str:
+    """Where a learned row ran and how: the device, and the torch threads and precision its
+    rollouts chose (gns.rollout records them; they may differ between rollouts under load)."""
     import torch
 
+    threads = sorted({int(r["torch_threads"]) for r in ran if "torch_threads" in r})
+    precisions = sorted({str(r["precision"]) for r in ran if "precision" in r})
     if device.type == "cuda":
-        return f"{device} ({torch.cuda.get_device_name(device)})"
-    return f"cpu, {_count(torch.get_num_threads(), 'torch thread')}"
+        where = f"{device} ({torch.cuda.get_device_name(device)})"
+    else:
+        counts = "-".join(str(t) for t in threads) or str(torch.get_num_threads())
+        where = f"cpu, {counts} torch thread{'' if counts == '1' else 's'}"
+    return ", ".join([where, *precisions])
 
 
 def _learned_row(
@@ -402,7 +409,7 @@ def _learned_row(
     # One short untimed rollout first: the first call pays for lazy initialisation (allocator,
     # kernels), which is not the cost of simulating a frame.
     rollout(simulator, trajectories[0], num_steps=min(2, trajectories[0].num_frames - history))
-    scores, predictions, seconds = [], [], []
+    scores, predictions, seconds, ran = [], [], [], []
     rollouts_dir.mkdir(parents=True, exist_ok=True)
     for index, trajectory in zip(indices, trajectories, strict=True):
         info = {"dataset": dataset_name, "split": split, "checkpoint": str(checkpoint)}
@@ -412,6 +419,7 @@ def _learned_row(
             # Its steps before the divergence; the NaN padding below scores the rest as inf.
             result = err.rollout
         save_rollout(rollouts_dir / f"rollout_{split}_{index}.npz", result)
+        ran.append(result.metadata)
         say(f"  trajectory {index}: {result.num_steps} steps rolled out; scoring")
         truth = trajectory.positions[history:]
         predicted = np.full(truth.shape, np.nan, dtype=np.float64)
@@ -422,7 +430,7 @@ def _learned_row(
         seconds.append(np.stack([result.timings[part] for part in TIMING_PARTS]))
     timings = np.concatenate(seconds, axis=1)  # (parts, all steps of all trajectories)
     name = MODEL_NAMES[simulator.config.model.kind]
-    row = Row(name, setting, _device_label(device), short=f"{name} {setting}")
+    row = Row(name, setting, _device_label(device, ran), short=f"{name} {setting}")
     if timings.shape[1]:
         # Means, not medians: the parts' means add up to the mean total.
         row.split = {part: float(timings[i].mean()) for i, part in enumerate(TIMING_PARTS)}

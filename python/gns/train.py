@@ -234,6 +234,8 @@ class Progress:
         return (step - self.start) / elapsed if elapsed > 0 else 0.0
 
     def show(self, step: int, loss: float, force: bool = False, threads: int | None = None) -> None:
+        if threads is not None:
+            self.threads = threads
         now = time.perf_counter()
         if not self.enabled or (self.tty and not force and now - self.last_shown < 0.5):
             return
@@ -246,8 +248,6 @@ class Progress:
             left = min(left, max(0.0, self.time_limit - (now - self.started)))
         eta = time.strftime("%H:%M:%S", time.gmtime(left)) if math.isfinite(left) else "--"
         line = f"step {step}/{self.total}  loss {loss:.4g}  {rate:.2f} steps/s  left {eta}"
-        if threads is not None:
-            self.threads = threads
         if self.threads is not None:  # chosen by timing the steps (gns.threads)
             line += f"  {self.threads} thread{'s' if self.threads > 1 else ''}"
         sys.stderr.write(("\r" + line + "   ") if self.tty else line + "\n")
