@@ -605,7 +605,7 @@ def test_checkpoints_rebuild_the_cconv_for_rollout_eval_and_report(tmp_path, cap
         vtk_every=0,
         progress=False,
     )
-    assert [r.method for r in result.rows] == ["GNS", "CConv", "constant velocity"]
+    assert [r.method for r in result.rows] == ["GNS", "CConv", "constant velocity", "static"]
     cconv_row = result.rows[1]
     assert cconv_row.status == "ok" and cconv_row.seconds_per_frame > 0
     assert math.isfinite(cconv_row.values["mse@full"])

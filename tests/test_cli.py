@@ -111,6 +111,8 @@ REPORT: list[Case] = [
     (["--horizons", "ten"], ["argument --horizons: ", "got 'ten'"]),
     (["--mpm", "grid=-3"], ["argument --mpm: MPM setting 'grid=-3'"]),
     (["--mpm", "none", "native"], ["argument --mpm: MPM setting 'none' cannot be combined"]),
+    (["--rest-steps", "-1"], ["argument --rest-steps: must be a whole number >= 0, got -1"]),
+    (["--rest-steps", "two"], ["argument --rest-steps: must be a whole number >= 0, got two"]),
 ]
 DEMO: list[Case] = [
     (["--trajectories", "2", "0", "1"], ["--trajectories: must be a whole number >= 1, got 0"]),
@@ -289,6 +291,25 @@ def test_no_traceback_from_the_gns_process(untrained, tmp_path):
 def test_help_returns_zero(capsys):
     assert main(["rollout", "--help"]) == 0
     assert "--trajectories" in capsys.readouterr().out
+
+
+def test_eval_and_report_help_say_what_the_deposit_figures_are(capsys):
+    assert main(["eval", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    for words in (
+        "static (every particle stays where the last input frame has it)",
+        "runout, the 99th minus the 1st percentile of x",
+        "pile_height, the 99th percentile of y minus the floor (the box's lower y bound, else "
+        "the ground truth's lowest y at frame 0)",
+        "runout_ratio, height_ratio, density_ratio, each over the ground truth's",
+        "front_x_p1 and front_x_p99",
+        "of the last frame",
+    ):
+        assert words in text, words
+    assert main(["report", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--rest-steps K" in text and "constant-velocity and static baselines" in text
+    assert "height ratio, the 99th percentile of y above the box's floor" in text
 
 
 # ------------------------------------------------------------------- with a trained run

@@ -86,8 +86,9 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
     payload = json.loads((report / "table.json").read_text())
     methods = [row["method"] for row in payload["rows"]]
     # GNS rows (latest, and best.pt when validation chose another step), five MPM settings
-    # (auto: native, 0.6 and 0.5 of the grid, twice the CFL number, both), the baseline.
-    assert set(methods[:-6]) == {"GNS"} and methods[-6:] == ["MPM"] * 5 + ["constant velocity"]
+    # (auto: native, 0.6 and 0.5 of the grid, twice the CFL number, both), the baselines.
+    baselines = ["constant velocity", "static"]
+    assert set(methods[:-7]) == {"GNS"} and methods[-7:] == ["MPM"] * 5 + baselines
     with open(report / "table.csv", newline="") as f:
         records = list(csv.DictReader(f))
     assert len(records) == len(payload["rows"])
@@ -108,7 +109,7 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
         if row["method"] == "GNS":
             parts = sum(row[f"{p}_ms"] for p in ("graph", "features", "model", "integration"))
             assert parts == pytest.approx(row["ms_per_frame"], rel=1e-9)
-    native = payload["rows"][-6]
+    native = payload["rows"][-7]
     assert "native" in native["setting"] and native["status"] == "ok"
     assert all(native[c] == 0.0 for c in numbers if "@" in c)
     assert [row["status"] for row in payload["rows"] if row["method"] != "MPM"] == ["ok"] * (

@@ -1,4 +1,5 @@
-"""Evaluation of runs: one-step errors, rollout metrics next to the baseline, and the CLI."""
+"""Evaluation of runs: one-step errors, rollout metrics next to the baselines, the deposit
+(runout, pile height, density, fronts) against the truth's, the rest test, and the CLI."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from data_helpers import SAND
 from gns.cli import main
 from gns.config import Config, ModelConfig
 from gns.data.trajectory import Trajectory
@@ -15,8 +17,10 @@ from gns.evaluate import (
     mean_neighbours,
     one_step_errors,
     outside_box,
+    rest_summary,
     rest_test,
 )
+from gns.metrics import front_positions, runout_extent
 from gns.rollout import Rollout, load_rollout
 from gns.simulator import LearnedSimulator, Scene
 from test_train import make_dataset
@@ -42,16 +46,18 @@ def test_one_step_errors_of_a_zero_acceleration_model_equal_the_baseline(tmp_pat
 
     trajectories = list(open_dataset(make_dataset(tmp_path / "data")))
     errors = one_step_errors(zero_acceleration_simulator(), trajectories)
-    # By hand: each window's constant-velocity guess against its next frame.
-    total, count = 0.0, 0
+    # By hand: each window's constant-velocity and static guesses against its next frame.
+    total, held, count = 0.0, 0.0, 0
     for t in trajectories:
         x = t.positions.astype(np.float64)
         free = t.particle_type != 3
         for start in range(t.num_frames - 6):
             guess = 2 * x[start + 5] - x[start + 4]
             total += np.mean(np.square(guess - x[start + 6])[free])
+            held += np.mean(np.square(x[start + 5] - x[start + 6])[free])
             count += 1
     assert errors["constant_velocity"] == pytest.approx(total / count, rel=1e-6)
+    assert errors["static"] == pytest.approx(held / count, rel=1e-6)
     assert errors["model"] == pytest.approx(errors["constant_velocity"], rel=1e-5)
 
 
@@ -87,11 +93,56 @@ def test_rollout_metrics_of_a_perfect_model_and_the_baseline_by_hand():
     assert baseline["mse@full"] == pytest.approx(miss.mean(), rel=1e-9)
     assert baseline["mse@1"] == pytest.approx(miss[0], rel=1e-9)
     assert baseline["mse@5"] == pytest.approx(miss[:5].mean(), rel=1e-9)
+    # Static after k steps: x_{5+k} - x_5 = g ((5 + k)^2 - 25) / 2 = g (k^2 + 10 k) / 2.
+    static = report["mean"]["static"]
+    fell = (1e-4 * (k * k + 10 * k) / 2) ** 2 / 2
+    assert static["mse@full"] == pytest.approx(fell.mean(), rel=1e-9)
+    assert static["mse@1"] == pytest.approx(fell[0], rel=1e-9)
     # A rigid shift of every free particle: W2^2 is the squared shift, like the MSE.
     shifted = evaluate_rollouts([synthetic_rollout(predicted_offset=0.01)])["mean"]["model"]
     assert shifted["mse@full"] == pytest.approx(1e-4, rel=1e-9)
     # W2^2 is in squared distance (summed over axes): the shift's squared length, 2e-4.
     assert shifted["ot_mean"] == pytest.approx(2e-4, rel=1e-6)
+
+
+def test_deposit_of_the_model_the_baselines_and_the_truth_by_hand():
+    report = evaluate_rollouts([synthetic_rollout()], horizons=(1, None))
+    (entry,) = report["trajectories"]
+    truth, static = entry["ground_truth"], entry["static"]
+    free = synthetic_rollout().particle_type != 3
+    positions = synthetic_rollout().ground_truth_rollout
+    # The particles only fall: x never changes, so every runout is that of the start.
+    start = positions[0, free]
+    assert truth["runout"] == runout_extent(start)
+    for name in ("model", "constant_velocity", "static", "ground_truth"):
+        assert entry[name]["runout_ratio"] == 1.0
+        assert len(entry[name]["front_x_p1"]) == len(entry[name]["front_x_p99"]) == 14
+    # Every free particle falls by the same amount, so the 99th percentile of y falls by it
+    # too: the static pile (frame 5 held) stands g (19^2 - 5^2) / 2 above the truth's
+    # (frame 19), from the box's floor y = 0.1.
+    assert truth["pile_height"] == pytest.approx(np.percentile(positions[-1, free, 1], 99) - 0.1)
+    assert static["pile_height"] - truth["pile_height"] == pytest.approx(1e-4 * 336 / 2)
+    assert static["height_ratio"] == pytest.approx(static["pile_height"] / truth["pile_height"])
+    assert entry["model"]["height_ratio"] == truth["height_ratio"] == 1.0
+    np.testing.assert_array_equal(
+        np.stack([truth["front_x_p1"], truth["front_x_p99"]], axis=1),
+        front_positions(positions, free),
+    )
+    # The means over trajectories, the truth's among them.
+    assert report["mean"]["ground_truth"]["runout"] == truth["runout"]
+    assert report["mean"]["static"]["height_ratio"] == static["height_ratio"]
+    assert "front_x_p1" not in report["mean"]["model"] and "mse" not in report["mean"]["model"]
+
+
+def test_without_bounds_the_floor_is_the_truths_lowest_particle_at_frame_0():
+    rollout = synthetic_rollout()
+    del rollout.metadata["bounds"]
+    (entry,) = evaluate_rollouts([rollout])["trajectories"]
+    free = rollout.particle_type != 3
+    floor = rollout.initial_positions[0, :, 1].min()  # kinematic particles included
+    top = np.percentile(rollout.ground_truth_rollout[-1, free, 1], 99)
+    assert entry["ground_truth"]["pile_height"] == pytest.approx(top - floor, rel=1e-12)
+    assert "outside_box" not in entry["ground_truth"]
 
 
 def test_a_diverged_rollout_is_infinitely_wrong_not_missing():
@@ -102,9 +153,17 @@ def test_a_diverged_rollout_is_infinitely_wrong_not_missing():
     assert model["mse@5"] == np.inf and model["mse@full"] == np.inf
     assert model["finite"] == 0.5
     assert report["trajectories"][1]["diverged_at_step"] == 3
+    # It never reached the last frame: no deposit there, but its fronts while it lasted.
+    diverged = report["trajectories"][1]["model"]
+    assert diverged["runout"] == diverged["runout_ratio"] == diverged["height_ratio"] == np.inf
+    assert model["runout_ratio"] == np.inf and len(diverged["front_x_p99"]) == 3
+    assert report["mean"]["static"]["runout_ratio"] == 1.0
     first = evaluate_rollouts([synthetic_rollout(diverged_at=0), good])
     assert first["mean"]["model"]["mse@full"] == np.inf
+    assert first["mean"]["model"]["runout_ratio"] == np.inf
     assert np.isfinite(first["mean"]["constant_velocity"]["mse@full"])
+    assert np.isfinite(first["mean"]["static"]["mse@full"])
+    assert first["trajectories"][0]["ground_truth"] is None
 
 
 def test_outside_box_by_hand():
@@ -155,6 +214,9 @@ def test_density_ratio_shows_a_rollout_that_packs_its_particles_closer():
     )
     assert expected > 1.5  # a real compaction, not a rounding
     assert report["mean"]["model"]["density_ratio"] == pytest.approx(expected, rel=1e-12)
+    assert report["mean"]["ground_truth"]["density_ratio"] == 1.0
+    neighbours = scipy_mean_neighbours(truth[-1, free], radius)
+    assert report["mean"]["ground_truth"]["neighbours"] == pytest.approx(neighbours, rel=1e-12)
     # Without a radius in the metadata there is nothing to count against.
     assert "density_ratio" not in evaluate_rollouts([rollout])["mean"]["model"]
 
@@ -185,12 +247,28 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
     assert main(["eval", "--run", str(run), "--data", str(data), "--every", "4"]) == 0
     report = json.loads((run / "eval_test.json").read_text())
     assert len(report["trajectories"]) == 2
-    for name in ("model", "constant_velocity"):
+    deposit = {"runout", "pile_height", "neighbours", "runout_ratio", "height_ratio"}
+    deposit |= {"density_ratio"}
+    for name in ("model", "constant_velocity", "static"):
         assert {"mse@1", "mse@5", "mse@full", "ot_mean", "mmd_mean", "one_step_mse"} <= set(
             report["mean"][name]
         )
+        assert deposit <= set(report["mean"][name])
+        for entry in report["trajectories"]:
+            assert len(entry[name]["front_x_p1"]) == len(entry[name]["front_x_p99"]) == 8
+    assert deposit | {"outside_box"} <= set(report["mean"]["ground_truth"])
     table = capsys.readouterr().out
     assert "const. velocity" in table and "one_step_mse" in table
+    header = next(line for line in table.splitlines() if line.startswith("metric"))
+    assert header.split() == [
+        "metric", "model", "const.", "velocity", "static", "truth", "cv/model", "static/model"
+    ]  # fmt: skip
+    (runout,) = [line.split() for line in table.splitlines() if line.startswith("runout_ratio")]
+    assert [float(v) for v in runout[1:]] == pytest.approx(
+        [report["mean"][n]["runout_ratio"] for n in ("model", "constant_velocity", "static")]
+        + [1.0],
+        rel=1e-3,
+    )
     # --run may name a checkpoint file: the report goes beside it.
     checkpoint = sorted((run / "checkpoints").glob("step_*.pt"))[0]
     args = ["eval", "--run", str(checkpoint), "--data", str(data), "--rollouts", str(out64)]
@@ -200,6 +278,7 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
     beside = json.loads((checkpoint.parent / "eval_test.json").read_text())
     assert beside["rollouts"] == [str(out64 / f"rollout_test_{i}.npz") for i in (0, 1)]
     rest = beside["rest"]
+    assert rest == rest_summary(rest["trajectories"], 3)
     assert rest["steps"] == 3 and len(rest["trajectories"]) == 2
     assert rest["mean"]["max_displacement"] == max(
         t["max_displacement"] for t in rest["trajectories"]
@@ -261,6 +340,80 @@ def test_a_one_frame_trajectory_has_no_truth_speed_but_is_still_held():
     assert np.isnan(result["truth_speed"]) and result["max_displacement"] == 0.0
 
 
+def test_rest_summary_is_the_mean_density_and_the_worst_pile():
+    results = [
+        {"truth_speed": 1e-4, "density_ratio": 1.0, "max_displacement": 0.01, "outside_box": 0.0},
+        {"truth_speed": 3e-4, "density_ratio": 2.0, "max_displacement": 0.03, "outside_box": 0.1},
+    ]
+    summary = rest_summary(results, 5)
+    assert summary["steps"] == 5 and summary["trajectories"] == results
+    assert summary["mean"] == {
+        "truth_speed": 3e-4,
+        "density_ratio": 1.5,
+        "max_displacement": 0.03,
+        "outside_box": 0.1,
+    }
+    with pytest.raises(ValueError, match="no rest test results"):
+        rest_summary([], 5)
+
+
 def test_rest_test_needs_a_step():
     with pytest.raises(ValueError, match="at least 1 step, got 0"):
         rest_test(zero_acceleration_simulator(), held_pile(context=True), 0)
+
+
+# ------------------------------------------------------------------- the real sand data
+
+
+@pytest.fixture(scope="module")
+def sand_test_split():
+    if not (SAND / "manifest.json").is_file():
+        pytest.skip("shared/data/sand2d-taichi not present")
+    from gns.data import open_dataset
+
+    return open_dataset(SAND, "test")
+
+
+def test_the_deposit_of_real_sand_against_itself_and_the_baselines(sand_test_split):
+    """The 8 test trajectories of sand2d-taichi scored as if the truth were the model: the
+    truth's own ratios are exactly 1; blocks that spread over the floor end 0.65-0.8 wide
+    (the box is 0.8 wide); the baselines, which start from frame 5, keep each block its width."""
+    metadata = sand_test_split.metadata
+    facts = {
+        "bounds": [list(pair) for pair in metadata.bounds],
+        "connectivity_radius": metadata.default_connectivity_radius,
+        "periodic": [False, False],
+        "kinematic_particle_types": [3],
+    }
+    rollouts = []
+    for i in range(len(sand_test_split)):
+        x = sand_test_split[i].positions
+        metadata_i = {**facts, "trajectory": i}
+        rollouts.append(
+            Rollout(x[:6], x[6:], x[6:], sand_test_split[i].particle_type, metadata=metadata_i)
+        )
+    # OT and MMD on the first predicted frame only: the deposit is what is checked here.
+    report = evaluate_rollouts(rollouts, horizons=(None,), distribution_every=10**6)
+    for entry, r in zip(report["trajectories"], rollouts, strict=True):
+        truth, model = entry["ground_truth"], entry["model"]
+        for figures in (truth, model):
+            assert figures["runout_ratio"] == figures["height_ratio"] == 1.0
+            assert figures["density_ratio"] == 1.0
+        assert 0.6 < truth["runout"] <= 0.8 and 0 < truth["pile_height"] < 0.2
+        fronts = np.subtract(truth["front_x_p99"], truth["front_x_p1"])
+        assert fronts[-1] == pytest.approx(truth["runout"], rel=1e-12)
+        assert fronts[-1] > 3 * fronts[0]  # a 0.2-wide block spreads over the floor
+        # The static baseline keeps the last input frame: its deposit is that frame's.
+        held = r.initial_positions[-1]
+        assert entry["static"]["runout"] == pytest.approx(runout_extent(held), rel=1e-12)
+        # Every particle of a block moves alike by frame 5 (falling or thrown as one), so
+        # constant velocity carries it along rigidly: as narrow as the static one, under a
+        # third of the truth's width, never spreading.
+        velocity = entry["constant_velocity"]
+        assert velocity["runout"] == pytest.approx(entry["static"]["runout"], rel=1e-3)
+        assert velocity["runout_ratio"] < 1 / 3 and entry["static"]["runout_ratio"] < 1 / 3
+        # Held where it was, the block stands at least 3x higher than the spread deposit.
+        assert entry["static"]["height_ratio"] > 3
+    # Constant velocity carries some blocks through the floor: below it at the end.
+    assert min(e["constant_velocity"]["pile_height"] for e in report["trajectories"]) < 0
+    assert report["mean"]["ground_truth"]["runout_ratio"] == 1.0

@@ -3,7 +3,8 @@
 Oracles: hand-computed numbers, brute force over all permutations (exact OT), scipy's LP solver
 (exact OT between sets of different sizes), analytic identities of W2 (translation, the
 mean/centred split), a direct double loop (MMD), the closed form of MMD^2 between Gaussians,
-and kinematics (constant velocity and constant acceleration) for the baseline.
+kinematics (constant velocity and constant acceleration) for the baselines, and the geometry
+of lattices whose percentiles fall on lattice sites (the deposit: runout, fronts, height).
 
 Statistical tolerances (seeds are fixed) allow 5 standard errors, a false failure about once
 in 3.5 million runs.
@@ -19,14 +20,22 @@ import pytest
 from gns.metrics import (
     SinkhornConvergenceError,
     constant_velocity_rollout,
+    deposit,
+    deposit_ratios,
     evaluate_rollout,
     exact_optimal_transport,
+    front_positions,
     horizon_mse,
     mmd,
     mse_over_time,
     one_step_mse,
     optimal_transport,
+    pile_floor,
+    pile_height,
+    ratio_of,
+    runout_extent,
     sinkhorn,
+    static_rollout,
 )
 from scipy.optimize import linprog
 
@@ -491,6 +500,193 @@ def test_kinematic_particles_follow_ground_truth_in_the_baseline():
 def test_constant_velocity_baseline_rejects_bad_input(history, steps, kwargs, match):
     with pytest.raises(ValueError, match=match):
         constant_velocity_rollout(history, steps, **kwargs)
+
+
+def test_static_baseline_holds_the_last_input_frame_and_kinematic_particles_follow_truth():
+    rng = np.random.default_rng(23)
+    history, truth = rng.random((3, 4, 2)), rng.random((5, 4, 2))
+    rollout = static_rollout(history, 5)
+    assert rollout.shape == (5, 4, 2) and rollout.dtype == np.float64
+    for frame in rollout:
+        np.testing.assert_array_equal(frame, history[-1])
+    # Exact on a scene at rest; one input frame is enough (no velocity is read).
+    np.testing.assert_array_equal(static_rollout(history[-1:], 2), rollout[:2])
+    kinematic = np.array([True, False, False, True])
+    held = static_rollout(history, 5, kinematic_mask=kinematic, ground_truth=truth)
+    np.testing.assert_array_equal(held[:, kinematic], truth[:, kinematic])
+    np.testing.assert_array_equal(held[:, ~kinematic], rollout[:, ~kinematic])
+    # Under constant acceleration a from rest at the last input frame it misses a k^2 / 2.
+    a = 1e-3
+    k = np.arange(6, dtype=float)[:, None, None]
+    falling = np.zeros((6, 1, 2)) + np.array([0.0, -0.5 * a]) * k**2
+    missed = falling[1:] - static_rollout(falling[:1], 5)
+    np.testing.assert_allclose(missed[:, 0, 1], -0.5 * a * np.arange(1, 6) ** 2, rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("history", "steps", "kwargs", "match"),
+    [
+        (np.zeros((4, 2)), 3, {}, r"initial_positions must be .*\(C \+ 1, N, D\)"),
+        (np.full((2, 4, 2), np.inf), 3, {}, r"NaN or Inf"),
+        (np.zeros((1, 4, 2)), 0, {}, r"num_steps must be a positive integer"),
+        (np.zeros((1, 4, 2)), 3, {"ground_truth": np.zeros((3, 4, 2))}, r"given together"),
+        (
+            np.zeros((1, 4, 2)),
+            3,
+            {"kinematic_mask": np.ones(3, bool), "ground_truth": np.zeros((3, 4, 2))},
+            r"kinematic_mask must be a boolean array of shape \(4,\)",
+        ),
+    ],
+)
+def test_static_baseline_rejects_bad_input(history, steps, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        static_rollout(history, steps, **kwargs)
+
+
+# --------------------------------------------------------------------------- deposit
+
+
+def lattice(columns: int, rows: int, spacing: float, origin=(0.0, 0.0)) -> np.ndarray:
+    """(columns * rows, 2) particles on a rectangular lattice, x fastest."""
+    i, j = np.meshgrid(np.arange(columns), np.arange(rows))
+    return np.asarray(origin) + spacing * np.stack([i.ravel(), j.ravel()], axis=1)
+
+
+# A 101 x 101 lattice of spacing 0.01 on [0, 1]^2: of its 10201 particles 101 share every x
+# (and every y). Sorted, the p-th percentile lies at index p / 100 * 10200: 102 (the second
+# column, x = 0.01) for p = 1 and 10098 (the 100th column, x = 0.99) for p = 99; both indices
+# fall inside a block of 101 equal values, so no interpolation reaches a neighbouring column.
+SQUARE = lattice(101, 101, 0.01)
+
+
+def test_runout_of_a_lattice_is_the_width_between_its_second_and_second_last_columns():
+    assert runout_extent(SQUARE) == pytest.approx(0.98, abs=1e-12)
+    # Only x counts, and a translation moves nothing.
+    tall = lattice(101, 7, 0.01, origin=(0.3, 0.2))
+    assert runout_extent(tall) == pytest.approx(0.98, abs=1e-12)
+    # Eleven particles at x = 0 ... 10: the percentiles fall between particles 0 and 1
+    # (0.1 of the way) and 9 and 10 (0.9 of the way): 9.9 - 0.1.
+    line = np.stack([np.arange(11.0), np.zeros(11)], axis=1)
+    assert runout_extent(line) == pytest.approx(9.8, abs=1e-12)
+    assert runout_extent(line[:1]) == 0.0  # a single particle has no width
+
+
+def test_runout_ignores_a_grain_thrown_far_out_and_masked_particles():
+    far = np.vstack([SQUARE, [[5.0, 0.0]]])
+    # 10202 particles: the 1st percentile lies at index 102.01 and the 99th at 10098.99,
+    # still between equal values (x = 0.01, x = 0.99); the grain at x = 5 moves neither.
+    assert runout_extent(far) == pytest.approx(0.98, abs=1e-12)
+    # 300 kinematic particles at x = -3 (a wall) count only when the mask lets them in: then
+    # of 10501 sorted values the 1st percentile (index 105) is on the wall and the 99th
+    # (index 10395, the square's 10095th: x = 0.99) is not.
+    wall = np.vstack([SQUARE, np.column_stack([np.full(300, -3.0), np.linspace(0, 1, 300)])])
+    sand = np.arange(len(wall)) < len(SQUARE)
+    assert runout_extent(wall, sand) == pytest.approx(0.98, abs=1e-12)
+    assert runout_extent(wall) == pytest.approx(3.99, abs=1e-12)
+
+
+def test_fronts_of_a_translating_and_a_spreading_block():
+    # Frame t: the square moved by 0.1 t along x, then stretched about x = 0.5 by 1 + t / 4.
+    t = np.arange(4, dtype=float)
+    moved = SQUARE[None] + np.array([0.1, 0.0]) * t[:, None, None]
+    fronts = front_positions(moved)
+    assert fronts.shape == (4, 2)
+    np.testing.assert_allclose(fronts, np.stack([0.01 + 0.1 * t, 0.99 + 0.1 * t], 1), atol=1e-12)
+    scale = 1 + t / 4
+    spread = SQUARE[None].repeat(4, axis=0)
+    spread[..., 0] = 0.5 + (SQUARE[:, 0] - 0.5) * scale[:, None]
+    expected = np.stack([0.5 - 0.49 * scale, 0.5 + 0.49 * scale], axis=1)
+    np.testing.assert_allclose(front_positions(spread), expected, atol=1e-12)
+    # Each frame's width is its runout.
+    for frame, (left, right) in zip(spread, front_positions(spread), strict=True):
+        assert runout_extent(frame) == pytest.approx(right - left, abs=1e-12)
+
+
+def test_pile_height_is_the_second_highest_row_above_the_floor():
+    # Rows at y = 0.1, 0.11, ..., 1.1: the 99th percentile is the 100th row, y = 1.09.
+    pile = lattice(101, 101, 0.01, origin=(0.2, 0.1))
+    assert pile_height(pile, None, 0.1) == pytest.approx(0.99, abs=1e-12)
+    assert pile_height(pile, None, 0.0) == pytest.approx(1.09, abs=1e-12)
+    # A lid of kinematic particles above it does not count; the mask keeps it out.
+    lid = np.column_stack([np.linspace(0.2, 1.2, 200), np.full(200, 3.0)])
+    sand = np.arange(len(pile) + 200) < len(pile)
+    assert pile_height(np.vstack([pile, lid]), sand, 0.1) == pytest.approx(0.99, abs=1e-12)
+    # A layer two rows thick: of its 100 sorted y the 99th percentile (index 98.01) is on the
+    # upper row. A column of 11 particles at y = 0 ... 10: 0.9 of the way from 9 to 10.
+    layer = lattice(50, 2, 0.01, origin=(0.0, 0.1))
+    assert pile_height(layer, None, 0.1) == pytest.approx(0.01, abs=1e-12)
+    column = np.stack([np.zeros(11), np.arange(11.0)], axis=1)
+    assert pile_height(column, None, 0.0) == pytest.approx(9.9, abs=1e-12)
+
+
+def test_pile_floor_is_the_box_floor_or_the_lowest_particle_of_frame_0():
+    frame = np.array([[0.5, 0.3], [0.6, 0.12], [0.2, 0.7]])
+    assert pile_floor([[0.0, 1.0], [0.1, 0.9]], frame) == 0.1
+    assert pile_floor(None, frame) == 0.12
+    with pytest.raises(ValueError, match="at least 2 dimensions"):
+        pile_floor(None, frame[:, :1])
+    with pytest.raises(ValueError, match="pairs"):
+        pile_floor([[0.0, 1.0]], frame)
+
+
+def test_deposit_of_a_diverged_frame_raises_or_is_inf_never_nan():
+    frames = np.stack([SQUARE, SQUARE + 0.1])
+    frames[1, 7, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        runout_extent(frames[1])
+    with pytest.raises(ValueError, match="frame 1, particle 7"):
+        front_positions(frames)
+    assert runout_extent(frames[1], nonfinite="inf") == math.inf
+    assert pile_height(frames[1], None, 0.0, nonfinite="inf") == math.inf
+    fronts = front_positions(frames, nonfinite="inf")
+    np.testing.assert_allclose(fronts[0], [0.01, 0.99], atol=1e-12)
+    assert np.all(fronts[1] == math.inf)
+    # A masked-out non-finite particle does not count.
+    free = np.arange(len(SQUARE)) != 7
+    assert runout_extent(frames[1], free) == pytest.approx(0.98, abs=1e-12)
+    with pytest.raises(ValueError, match="floor must be a finite number"):
+        pile_height(SQUARE, None, math.nan)
+    with pytest.raises(ValueError, match="at least 2 dimensions"):
+        pile_height(SQUARE[:, :1], None, 0.0)
+    with pytest.raises(ValueError, match="mask must be a boolean array"):
+        runout_extent(SQUARE, np.ones(len(SQUARE), int))
+
+
+def test_deposit_of_a_lattice_and_of_it_stretched_against_it():
+    # The square lattice (spacing 0.01) and the same particles 2x as far apart in x and at
+    # 0.6x in y (spacing 0.02 and 0.006), both resting on y = 0, radius 0.015. Neighbours by
+    # hand, no pair near the radius: the square has its 2 * 101 * 100 axial pairs (0.01) and
+    # 2 * 100^2 diagonal ones (0.0141) within it, the next at 0.02 beyond; the stretched one
+    # only the pairs one and two rows apart in each column (0.006, 0.012), 101 * (100 + 99).
+    stretched = SQUARE * np.array([2.0, 0.6])
+    frames = np.stack([SQUARE, stretched])
+    free = np.ones(len(SQUARE), bool)
+    ours = deposit(frames, free, 0.0, radius=0.015)
+    truth = deposit(np.stack([SQUARE, SQUARE]), free, 0.0, radius=0.015)
+    n = len(SQUARE)
+    assert truth["neighbours"] == pytest.approx(2 * (2 * 101 * 100 + 2 * 100**2) / n, rel=1e-12)
+    assert ours["neighbours"] == pytest.approx(2 * 101 * 199 / n, rel=1e-12)
+    assert ours["runout"] == pytest.approx(1.96, abs=1e-12)
+    assert ours["pile_height"] == pytest.approx(0.594, abs=1e-12)
+    np.testing.assert_allclose(ours["front_x_p1"], [0.01, 0.02], atol=1e-12)
+    np.testing.assert_allclose(ours["front_x_p99"], [0.99, 1.98], atol=1e-12)
+    ratios = deposit_ratios(ours, truth)
+    assert ratios["runout_ratio"] == pytest.approx(2.0, rel=1e-12)
+    assert ratios["height_ratio"] == pytest.approx(0.6, rel=1e-12)
+    assert ratios["density_ratio"] == pytest.approx(101 * 199 / (2 * 101 * 100 + 2 * 100**2))
+    assert deposit_ratios(truth, truth) == dict.fromkeys(ratios, 1.0)
+    # Without a floor or a radius those figures are not made up; a diverged last frame is inf.
+    assert set(deposit(frames, free, None)) == {"runout", "front_x_p1", "front_x_p99"}
+    frames[1, 3] = np.nan
+    broken = deposit(frames, free, 0.0, radius=0.015)
+    assert broken["runout"] == broken["pile_height"] == broken["neighbours"] == math.inf
+    assert deposit_ratios(broken, truth)["density_ratio"] == math.inf
+
+
+def test_ratio_of_never_divides_by_zero_into_nan():
+    assert ratio_of(3.0, 2.0) == 1.5
+    assert ratio_of(0.0, 0.0) == 1.0  # a single particle against a single particle: the same
+    assert ratio_of(0.5, 0.0) == math.inf
 
 
 # --------------------------------------------------------------------------- summary

@@ -1,7 +1,9 @@
 """`gns report`: each row against an independent computation from the dataset and the saved
 rollouts (numpy, brute-force optimal transport), the MPM rows (native reproduces the data
-exactly; a failing cheaper setting is a row, not a crash), datasets not made by `gns generate`,
-the tables parsing back, the VTK writer against a small XML reader, and bad arguments."""
+exactly, its deposit included; a failing cheaper setting is a row, not a crash), the static
+baseline and the deposit figures against the ground truth's, the rest test, datasets not made
+by `gns generate`, the tables parsing back, the VTK writer against a small XML reader, and bad
+arguments."""
 
 from __future__ import annotations
 
@@ -19,8 +21,17 @@ from gns import mpm
 from gns.config import Config, ModelConfig, TrainConfig
 from gns.data import open_dataset
 from gns.data.h5 import write_h5
+from gns.evaluate import rest_summary, rest_test
 from gns.generate import generate, preset_scene
-from gns.plots import RolloutFigure, Series, animation_frames, error_over_time, error_vs_time
+from gns.metrics import front_positions, pile_height, runout_extent
+from gns.plots import (
+    RolloutFigure,
+    Series,
+    animation_frames,
+    error_over_time,
+    error_vs_time,
+    front_over_time,
+)
 from gns.report import (
     MpmVariant,
     Row,
@@ -31,6 +42,7 @@ from gns.report import (
     score,
     table_columns,
 )
+from gns.rollout import load_rollout
 from gns.train import train
 from gns.vtk import write_series
 
@@ -70,6 +82,7 @@ def generated_report(generated):
         mpm=["native", "grid=20"],
         animation_frames=0,
         vtk_every=0,
+        rest_steps=2,
         progress=False,
     )
 
@@ -100,12 +113,100 @@ def test_native_mpm_reproduces_the_ground_truth_exactly(generated_report):
     rows = rows_by_method(generated_report)
     native = rows[("MPM", "grid 40 (dx 0.025)")]
     assert "native" in native.setting and native.status == "ok"
-    assert native.values and all(value == 0.0 for value in native.values.values())
+    errors = {key: value for key, value in native.values.items() if "@" in key}
+    assert errors and all(value == 0.0 for value in errors.values())
+    # The same frames: the same deposit as the truth's, exactly.
+    assert [native.values[k] for k in DEPOSIT_COLUMNS] == [1.0, 1.0, 1.0]
+    truth = json.loads((generated_report.out / "table.json").read_text())["deposits"]
+    for ours, theirs in zip(native.deposits, truth["ground_truth"]["trajectories"], strict=True):
+        assert ours["runout"] == theirs["runout"] and ours["pile_height"] == theirs["pile_height"]
+        assert ours["front_x_p99"].tolist() == theirs["front_x_p99"]
     assert native.seconds_per_frame > 0
     coarse = rows[("MPM", "grid 20 (dx 0.05)")]
     # A coarser grid is a different simulation of the same particles: nonzero, finite error.
     assert coarse.status == "ok" and coarse.seconds_per_frame > 0
     assert all(0 < value < math.inf for value in coarse.values.values())
+
+
+DEPOSIT_COLUMNS = ("runout_ratio", "height_ratio", "density_ratio")
+
+
+def test_static_row_holds_the_last_input_frame(generated, generated_report):
+    (row,) = [r for r in generated_report.rows if r.method == "static"]
+    assert row.role == "baseline" and row.seconds_per_frame > 0
+    test = open_dataset(generated / "data", "test")
+    full, runout_ratios = [], []
+    for trajectory, deposit in zip(test, row.deposits, strict=True):
+        x = trajectory.positions.astype(np.float64)
+        free = trajectory.particle_type != 3
+        squared = ((x[HISTORY - 1] - x[HISTORY:])[:, free] ** 2).mean(axis=(1, 2))
+        full.append(squared.mean())
+        # Its deposit is the last input frame's, in every frame; the floor is the box's.
+        held, last = x[HISTORY - 1], x[-1]
+        assert deposit["runout"] == pytest.approx(runout_extent(held, free), rel=1e-12)
+        floor = test.metadata.bounds[1][0]
+        assert deposit["pile_height"] == pytest.approx(pile_height(held, free, floor), rel=1e-12)
+        fronts = front_positions(held[None], free)[0]
+        assert np.all(deposit["front_x_p1"] == fronts[0])
+        assert np.all(deposit["front_x_p99"] == fronts[1])
+        runout_ratios.append(runout_extent(held, free) / runout_extent(last, free))
+    assert row.values["mse@full"] == pytest.approx(np.mean(full), rel=1e-9)
+    assert row.values["runout_ratio"] == pytest.approx(np.mean(runout_ratios), rel=1e-9)
+
+
+def test_deposit_columns_and_the_truths_own_deposit_in_table_json(generated, generated_report):
+    out = generated_report.out
+    payload = json.loads((out / "table.json").read_text())
+    assert set(DEPOSIT_COLUMNS) <= set(payload["columns"])
+    header = (out / "table.md").read_text().splitlines()[0]
+    assert "| runout ratio | height ratio | density ratio |" in header
+    test = open_dataset(generated / "data", "test")
+    truth = payload["deposits"]["ground_truth"]
+    for trajectory, deposit in zip(test, truth["trajectories"], strict=True):
+        x, free = trajectory.positions, trajectory.particle_type != 3
+        assert deposit["runout"] == pytest.approx(runout_extent(x[-1], free), rel=1e-12)
+        predicted = front_positions(x[HISTORY:], free)
+        np.testing.assert_array_equal(deposit["front_x_p1"], predicted[:, 0])
+    assert truth["mean"]["runout"] == pytest.approx(
+        np.mean([d["runout"] for d in truth["trajectories"]]), rel=1e-12
+    )
+    # Every row's per-trajectory figures, whose means are the table's.
+    assert [r["method"] for r in payload["deposits"]["rows"]] == [
+        r["method"] for r in payload["rows"]
+    ]
+    for record, deposits in zip(payload["rows"], payload["deposits"]["rows"], strict=True):
+        for column in DEPOSIT_COLUMNS:
+            per_trajectory = [d[column] for d in deposits["trajectories"]]
+            assert record[column] == pytest.approx(np.mean(per_trajectory), rel=1e-12)
+            assert deposits["mean"][column] == record[column]
+    # The learned rollouts carry their deposit.
+    (saved,) = (out / "rollouts").glob("*/rollout_test_1.npz")
+    metrics = load_rollout(saved).metrics
+    (learned,) = [r for r in payload["deposits"]["rows"] if r["method"] == "GNS"]
+    assert metrics["runout"] == learned["trajectories"][1]["runout"]
+    assert metrics["front_x_p99"].tolist() == learned["trajectories"][1]["front_x_p99"]
+    assert (out / "fronts.png").is_file() and "fronts.png" in (out / "report.md").read_text()
+
+
+def test_the_rest_test_runs_for_every_learned_row_and_shows(generated, generated_report):
+    from gns.checkpoints import load_simulator
+
+    out = generated_report.out
+    payload = json.loads((out / "table.json").read_text())
+    (rest,) = payload["rest"]
+    assert rest["method"] == "GNS" and rest["steps"] == 2
+    # The same figures as the rest test of the checkpoint on its own.
+    simulator = load_simulator(generated / "run/checkpoints/step_000000002.pt", "cpu")
+    test = open_dataset(generated / "data", "test")
+    alone = rest_summary([rest_test(simulator, t, 2) for t in test], 2)
+    for key, value in alone["mean"].items():
+        assert rest["mean"][key] == pytest.approx(value, rel=1e-5, abs=1e-9), key
+    markdown = (out / "report.md").read_text()
+    assert "## Rest test" in markdown and "rolled out 2 steps by each learned model" in markdown
+    assert "| density ratio (mean) | largest displacement (worst) |" in markdown
+    (row,) = [r for r in generated_report.rows if r.method == "GNS"]
+    assert f"Held still for 2 steps, the last frames under {row.short} move" in markdown
+    assert "<h2>Rest test</h2>" in (out / "report.html").read_text()
 
 
 def test_learned_row_is_scored_from_its_saved_rollouts_and_its_time_split_adds_up(
@@ -247,11 +348,17 @@ def test_a_diverged_learned_rollout_is_reported_as_diverged(generated, monkeypat
     assert row.status.startswith("diverged") and "trajectory 0 at step 3" in row.status
     assert row.diverged == [(0, 3)] and row.diverged_at == 3
     assert row.values["mse@1"] < math.inf and row.values["mse@full"] == math.inf
+    # It never reached the last frame: no deposit there.
+    assert all(row.values[k] == math.inf for k in DEPOSIT_COLUMNS)
     assert "inf" in (result.out / "table.md").read_text()
     payload = json.loads((result.out / "table.json").read_text())
-    record, baseline = payload["rows"]
+    record, baseline, static = payload["rows"]
     assert record["mse@full"] is None and record["mse@1"] == row.values["mse@1"]
+    assert record["runout_ratio"] is None and static["runout_ratio"] > 0
     assert record["diverged_at_step"] == 3 and baseline["diverged_at_step"] is None
+    # Its fronts while it lasted, none after (strict JSON: null).
+    fronts = payload["deposits"]["rows"][0]["trajectories"][0]["front_x_p99"]
+    assert all(f is not None for f in fronts[:3]) and set(fronts[3:]) == {None}
     # VTK has only the finite frames of the prediction: 6 history + 3 predicted, every 2nd.
     pvd = ET.parse(result.out / "vtk/prediction.pvd").getroot()
     assert len(pvd.findall("./Collection/DataSet")) == len(range(0, 9, 2))
@@ -284,7 +391,7 @@ def test_datasets_not_made_by_generate_get_no_mpm_rows_and_say_why(tmp_path, one
         vtk_every=0,
         progress=False,
     )
-    assert [r.method for r in result.rows] == ["GNS", "constant velocity"]
+    assert [r.method for r in result.rows] == ["GNS", "constant velocity", "static"]
     (reason,) = [item for item in result.left_out if item.startswith("MPM rows")]
     assert "not written by `gns generate`" in reason
     assert reason in (result.out / "report.md").read_text()
@@ -373,6 +480,7 @@ def test_horizons_and_mpm_settings_parse():
         ({"every": 0}, "every must be a whole number >= 1, got 0"),
         ({"animation_frames": -1}, "animation_frames must be a whole number >= 0, got -1"),
         ({"vtk_every": -2}, "vtk_every must be a whole number >= 0, got -2"),
+        ({"rest_steps": -1}, "rest_steps must be a whole number >= 0, got -1"),
         ({"horizons": ["1", "0"]}, "a horizon must be a positive whole number"),
         ({"mpm": ["grid=-3"]}, "MPM setting 'grid=-3'"),
         ({"mpm": ["native", "none"]}, "cannot be combined"),
@@ -538,11 +646,66 @@ def test_conclusion_when_every_learned_row_diverged_and_a_cheaper_simulator_fail
     )
 
 
+def deposit(runout, height, ratios):
+    """Row values of a deposit: mean runout and height, and the three ratios."""
+    keys = ("runout_ratio", "height_ratio", "density_ratio")
+    return {"runout": runout, "pile_height": height, **dict(zip(keys, ratios, strict=True))}
+
+
+def test_conclusion_says_where_the_sand_stops_against_the_truth_and_the_static_baseline():
+    learned = row("GNS best.pt (step 2000)", "learned", 2e-3, values(1e-8, 2e-8, 1e-3))
+    learned.values.update(deposit(0.31, 0.08, (0.43, 1.6, 8.5)))
+    learned.rest = {
+        "steps": 50,
+        "mean": {"density_ratio": 1.31, "max_displacement": 0.012, "truth_speed": 1e-4},
+    }
+    static = row("static", "baseline", 1e-6, values(3e-8, 4e-8, 2e-3))
+    static.values.update(deposit(0.2, 0.2, (0.28, 4.0, 1.09)))
+    velocity = row("constant velocity", "baseline", 1e-5, values(3e-8, 4e-8, 3e-3))
+    truth = {"runout": 0.72, "pile_height": 0.05, "neighbours": 10.0}
+    first, where, rest, winners, diverged = conclusion(
+        [learned, velocity, static], COLUMNS, 155, truth
+    )
+    assert first == (
+        "Over the full 155-frame rollouts GNS best.pt (step 2000) has 3.0x lower MSE than "
+        "constant velocity (0.001 against 0.003) and 2.0x lower MSE than the static baseline "
+        "(0.002) at 2.0 ms per frame; the reference simulator was not run (see Left out)."
+    )
+    assert where == (
+        "Where the sand stops (the last frame, means over trajectories): GNS best.pt (step "
+        "2000)'s deposit is 0.31 wide against the truth's 0.72 and piles 0.08 high against "
+        "0.05; per trajectory its runout is 0.43x the truth's, its height 1.6x, its density "
+        "8.5x (the table's ratios); the static baseline's is 0.2 wide and piles 0.2 high "
+        "(runout 0.28x, height 4.0x, density 1.1x)."
+    )
+    assert rest == (
+        "Held still for 50 steps, the last frames under GNS best.pt (step 2000) move by at "
+        "most 0.012 (the data's own last step: at most 0.0001) and end 1.3x as densely packed "
+        "as they started."
+    )
+    assert winners.startswith("Lowest MSE: the first predicted frame: GNS best.pt")
+    assert diverged == "No learned rollout diverged."
+    # Without the truth's deposit (or a static row) those parts are left out, not guessed.
+    assert conclusion([learned, velocity], COLUMNS, 155)[0].endswith("(see Left out).")
+    assert not any(s.startswith("Where") for s in conclusion([learned, velocity], COLUMNS, 155))
+    learned.rest["mean"]["max_displacement"] = math.inf
+    assert conclusion([learned, velocity], COLUMNS, 155)[1] == (
+        "Held still for 50 steps, the last frames under GNS best.pt (step 2000) diverged (see "
+        "the rest test)."
+    )
+
+
 def test_the_conclusion_opens_the_report(generated_report):
     out, rows = generated_report.out, generated_report.rows
     payload = json.loads((out / "table.json").read_text())
-    sentences = conclusion(rows, payload["columns"], payload["context"]["steps"])
-    assert payload["context"]["conclusion"] == sentences and len(sentences) >= 3
+    truth = payload["deposits"]["ground_truth"]["mean"]
+    sentences = conclusion(rows, payload["columns"], payload["context"]["steps"], truth)
+    assert payload["context"]["conclusion"] == sentences and len(sentences) >= 5
+    assert sentences[0].startswith("Over the full 8-frame rollouts GNS")
+    assert "and" in sentences[0] and "than the static baseline" in sentences[0]
+    assert sentences[1].startswith("Where the sand stops (the last frame")
+    assert f"against the truth's {truth['runout']:.3g}" in sentences[1]
+    assert sentences[2].startswith("Held still for 2 steps")
     assert any("the reference simulator at its native settings" in s for s in sentences)
     markdown = (out / "report.md").read_text().splitlines()
     assert markdown[2] == "**In short.** " + " ".join(sentences)
@@ -605,6 +768,28 @@ def test_error_vs_time_marks_a_method_that_diverged_before_a_horizon(tmp_path):
         "GNS latest.pt: diverged at step 0",
         "constant velocity",
     ]
+
+
+def test_fronts_over_time_draw_the_truth_and_stop_where_a_series_diverged(tmp_path):
+    truth = np.stack([0.4 - 0.01 * np.arange(6), 0.6 + 0.01 * np.arange(6)], axis=1)
+    diverged = truth.copy()
+    diverged[4:] = math.inf
+    series = [
+        Series("GNS best.pt", 2e-3, {}, diverged_at=4, fronts=diverged),
+        Series("static", 1e-6, {}, fronts=np.repeat(truth[:1], 6, axis=0)),
+        Series("MPM grid 20", None, {}),  # failed: no fronts, left out
+    ]
+    figure = front_over_time(series, truth, tmp_path / "fronts.png", first_frame=6)
+    assert (tmp_path / "fronts.png").is_file()
+    (ax,) = figure.axes
+    # Two fronts each for the truth and the two series with fronts, and one x per front at
+    # the diverged series' last finite frame (6 + 3).
+    marks = x_marks(ax)
+    assert len(ax.lines) == 6 + len(marks) and len(marks) == 2
+    assert sorted(m.get_xydata().tolist()[0][1] for m in marks) == [truth[3, 0], truth[3, 1]]
+    assert all(m.get_xydata()[0, 0] == 9 for m in marks)
+    np.testing.assert_array_equal(ax.lines[0].get_xydata()[:, 0], np.arange(6, 12))
+    assert legend_texts(figure) == ["ground truth", "GNS best.pt: diverged at step 4", "static"]
 
 
 def test_the_animation_shows_a_diverged_prediction_up_to_where_it_diverged():

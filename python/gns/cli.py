@@ -201,11 +201,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser(
         "eval",
-        help="one-step and rollout metrics of a run next to the constant-velocity baseline",
+        help="one-step and rollout metrics of a run next to the constant-velocity and static "
+        "baselines, with where the sand stops and how high it piles",
         description="Reads the rollouts written by `gns rollout` (RUN/rollouts/SPLIT), computes "
         "MSE over time and at horizons, optimal transport and MMD (bandwidth 0.1) for the model "
-        "and for the constant-velocity baseline, plus one-step MSE over the split's windows; "
-        "writes RUN/eval_SPLIT.json.",
+        "and for two baselines, constant velocity (every particle keeps its last velocity) and "
+        "static (every particle stays where the last input frame has it), plus one-step MSE over "
+        "the split's windows. The deposit, over the non-kinematic particles of the last frame, "
+        "for the model, both baselines and the ground truth: runout, the 99th minus the 1st "
+        "percentile of x (how wide the sand lies); pile_height, the 99th percentile of y minus "
+        "the floor (the box's lower y bound, else the ground truth's lowest y at frame 0); "
+        "neighbours, the mean count of other particles within the connectivity radius; and "
+        "runout_ratio, height_ratio, density_ratio, each over the ground truth's (1 is right). "
+        "Percentiles interpolate linearly between sorted values. The fronts (1st and 99th "
+        "percentile of x in every frame) go to the JSON as front_x_p1 and front_x_p99. Means "
+        "are over trajectories (outside_box: the worst). Writes RUN/eval_SPLIT.json.",
     )
     ev.add_argument("--run", type=existing_path, required=True, help="run folder")
     ev.add_argument("--data", type=existing_path, required=True, help="dataset folder")
@@ -260,13 +270,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser(
         "report",
-        help="rollout error against run time per frame: GNS, the reference simulator, baseline",
+        help="rollout error against run time per frame: GNS, the reference simulator, baselines",
         description="Rolls out each checkpoint on the split (timed; GNS and CConv checkpoints "
         "alike, one row each, named by their model), re-runs the reference MPM "
         "simulator at native and cheaper settings when the dataset was made by `gns generate`, "
-        "scores them and the constant-velocity baseline (MSE, optimal transport, MMD at "
-        "several horizons), and writes report.md / report.html, table.{md,csv,json}, "
-        "error_vs_time.png, error_over_time.png, a GIF of one rollout and VTK files to --out.",
+        "scores them and the constant-velocity and static baselines (MSE, optimal transport, "
+        "MMD at several horizons; where the sand stops and how high it piles in the last "
+        "frame over the ground truth's: runout ratio, the 99th minus the 1st percentile of x; "
+        "height ratio, the 99th percentile of y above the box's floor; density ratio, "
+        "neighbours within the connectivity radius), and writes report.md / report.html, "
+        "table.{md,csv,json}, error_vs_time.png, error_over_time.png, fronts.png, a GIF of one "
+        "rollout and VTK files to --out.",
     )
     rep.add_argument(
         "--run", type=existing_path, required=True, help="run folder or checkpoint file"
@@ -314,6 +328,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--vtk-every",
         type=non_negative_int,
         help="VTK frame stride (0: none; default: about 100 frames)",
+    )
+    rep.add_argument(
+        "--rest-steps",
+        type=non_negative_int,
+        default=0,
+        metavar="K",
+        help="also hold each trajectory's last frame still and roll every checkpoint out K "
+        "steps from it: does a settled pile stay put and keep its packing "
+        "(gns.evaluate.rest_test)? 0: skip (default)",
     )
     add_runtime_options(rep)
     rep.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -509,7 +532,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.data import open_dataset
     from gns.data.atomic import write_json_atomic
     from gns.device import resolve_device
-    from gns.evaluate import evaluate_rollouts, one_step_errors, rest_test
+    from gns.evaluate import evaluate_rollouts, one_step_errors, rest_summary, rest_test
     from gns.rollout import load_rollout
 
     set_threads(args.threads)
@@ -543,31 +566,12 @@ def run_eval(args: argparse.Namespace) -> int:
             report["mean"][name]["one_step_mse"] = value
     if args.rest_steps:
         rest = [rest_test(simulator, t, args.rest_steps, device=device) for t in dataset]
-        # The worst pile, not the mean one, for how far particles went.
-        worst = ("max_displacement", "outside_box", "truth_speed")
-        report["rest"] = {
-            "steps": args.rest_steps,
-            "trajectories": rest,
-            "mean": {
-                key: float((np.max if key in worst else np.mean)([r[key] for r in rest]))
-                for key in rest[0]
-            },
-        }
+        report["rest"] = rest_summary(rest, args.rest_steps)
     report["split"], report["rollouts"] = args.split, [str(f.absolute()) for f in files]
     written = run_folder(args.run) / f"eval_{args.split}.json"
     write_json_atomic(written, report)
-    mean = report["mean"]
-    keys = [k for k in mean["model"] if k != "finite"] + ["finite"]
     print(f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box: worst)")
-    print(f"{'metric':<16} {'model':>14} {'const. velocity':>16} {'ratio':>8}")
-    for key in keys:
-        a, b = mean["model"].get(key, np.nan), mean["constant_velocity"].get(key, np.nan)
-        # Errors are compared as ratios; these figures are not errors.
-        plain = key in ("finite", "outside_box", "density_ratio")
-        ratio = b / a if a and np.isfinite(a) and not plain else np.nan
-        print(f"{key:<16} {a:>14.4g} {b:>16.4g} {ratio:>8.3g}")
-    if "ground_truth" in mean:
-        print(f"(the ground truth itself: outside_box {mean['ground_truth']['outside_box']:.4g})")
+    print_summary(report["mean"])
     if "rest" in report:
         figures = ", ".join(f"{k} {v:.4g}" for k, v in report["rest"]["mean"].items())
         print(
@@ -576,6 +580,46 @@ def run_eval(args: argparse.Namespace) -> int:
         )
     print(f"wrote {written}")
     return 0
+
+
+# The columns of `gns eval`'s summary: evaluate_rollouts' names and their headings.
+SUMMARY_COLUMNS = {
+    "model": "model",
+    "constant_velocity": "const. velocity",
+    "static": "static",
+    "ground_truth": "truth",
+}
+
+
+def print_summary(mean: dict[str, dict[str, float]]) -> None:
+    """evaluate_rollouts' means as a table: one line per figure, one column per name, and for
+    the errors how many times the model's each baseline's is (above 1: the model is better)."""
+    names = list(SUMMARY_COLUMNS)
+    keys = list(dict.fromkeys(k for name in names for k in mean.get(name, {})))
+    keys = [k for k in keys if k != "finite"] + ["finite"]
+    headings = [f"{SUMMARY_COLUMNS[n]:>{max(12, len(SUMMARY_COLUMNS[n]))}}" for n in names]
+    print(f"{'metric':<16} {' '.join(headings)} {'cv/model':>9} {'static/model':>12}")
+    for key in keys:
+        values = [mean.get(name, {}).get(key) for name in names]
+        cells = [
+            f"{'' if v is None else f'{v:.4g}':>{len(h)}}"
+            for v, h in zip(values, headings, strict=True)
+        ]
+        # Errors are compared as ratios; the other figures (the deposit, the box) are not.
+        error = key.startswith("mse@") or key in ("ot_mean", "mmd_mean", "one_step_mse")
+        model, ratios = values[0], []
+        for baseline, width in ((values[1], 9), (values[2], 12)):
+            ratio = ""
+            if error and baseline is not None and model and math.isfinite(model):
+                ratio = f"{baseline / model:.3g}"
+            ratios.append(f"{ratio:>{width}}")
+        print(f"{key:<16} {' '.join(cells)} {' '.join(ratios)}")
+    print(
+        "last frame: runout = 99th - 1st percentile of x, pile_height = 99th percentile of y "
+        "above the floor,\nneighbours within the connectivity radius; *_ratio: over the truth's "
+        "(1 is right); cv/model, static/model:\nthe baseline's error over the model's (above "
+        "1: the model is better)"
+    )
 
 
 def run_generate(args: argparse.Namespace) -> int:
@@ -638,6 +682,7 @@ def run_report(args: argparse.Namespace) -> int:
         mpm=args.mpm,
         animation_frames=args.animation_frames,
         vtk_every=args.vtk_every,
+        rest_steps=args.rest_steps,
         device=args.device,
         progress=not args.quiet,
         command=args.command_line,

@@ -1,11 +1,13 @@
 """Evaluation of a trained run: one-step MSE over a split, and the metrics of its rollouts next
-to the constant-velocity baseline (every particle keeps its last velocity) on the same frames.
+to two baselines on the same frames: constant velocity (every particle keeps its last velocity)
+and static (every particle stays where the last input frame has it).
 
     one_step_errors(simulator, dataset)   position MSE of single steps from ground-truth inputs
     evaluate_rollouts(rollouts)           per-trajectory and mean rollout metrics (MSE over time
-                                          and at horizons, OT, MMD), model and baseline, plus how
-                                          far any particle left the box and how densely the
-                                          last frame is packed against the ground truth
+                                          and at horizons, OT, MMD), model and baselines, plus
+                                          how far any particle left the box and the deposit:
+                                          where the sand stops (runout, fronts), how high it
+                                          piles and how densely it packs, against the truth's
     rest_test(simulator, trajectory, steps)
                                           the trajectory's last frame held still and rolled
                                           out: does the model keep a settled pile in place?
@@ -22,13 +24,36 @@ import torch
 
 from gns.data.trajectory import Trajectory
 from gns.data.windows import collate, trajectory_windows, window_keys
-from gns.metrics import DEFAULT_HORIZONS, constant_velocity_rollout, evaluate_rollout
+from gns.metrics import (
+    DEFAULT_HORIZONS,
+    DEPOSIT_CURVES,
+    DEPOSIT_FIGURES,
+    constant_velocity_rollout,
+    deposit,
+    deposit_ratios,
+    evaluate_rollout,
+    mean_neighbours,
+    pile_floor,
+    ratio_of,
+    static_rollout,
+)
 from gns.rollout import Rollout, RolloutDiverged, rollout
 from gns.simulator import LearnedSimulator
 
-__all__ = ["evaluate_rollouts", "mean_neighbours", "one_step_errors", "outside_box", "rest_test"]
+# mean_neighbours lived here first: still importable from gns.evaluate.
+__all__ = [
+    "evaluate_rollouts",
+    "mean_neighbours",
+    "one_step_errors",
+    "outside_box",
+    "rest_summary",
+    "rest_test",
+]
 
-MODELS = ("model", "constant_velocity")
+# What is scored: the learned model and the two baselines.
+MODELS = ("model", "constant_velocity", "static")
+# Per-frame curves, kept per trajectory and left out of the means.
+CURVES = ("mse", *DEPOSIT_CURVES)
 
 
 @torch.no_grad()
@@ -39,9 +64,10 @@ def one_step_errors(
     max_windows: int | None = None,
     device: torch.device | str = "cpu",
 ) -> dict[str, float]:
-    """Mean one-step position MSE (per particle and axis, non-kinematic particles) of the model
-    and of the constant-velocity baseline over the windows of `trajectories`: all of them, or
-    `max_windows` spread evenly over the split."""
+    """Mean one-step position MSE (per particle and axis, non-kinematic particles) of the model,
+    of the constant-velocity baseline and of the static one (the last input frame again) over
+    the windows of `trajectories`: all of them, or `max_windows` spread evenly over the
+    split."""
     from gns.train import batch_tensors
 
     history = simulator.config.model.velocity_history + 1
@@ -63,9 +89,13 @@ def one_step_errors(
             predicted = simulator.predict_positions(
                 sequence, t["particle_type"], t["n_node"], t["context"], t["material_property"]
             )
-            baseline = 2 * sequence[:, -1] - sequence[:, -2]
+            guesses = {
+                "model": predicted,
+                "constant_velocity": 2 * sequence[:, -1] - sequence[:, -2],
+                "static": sequence[:, -1],
+            }
             free = ~simulator.kinematic_mask(t["particle_type"])
-            for name, guess in (("model", predicted), ("constant_velocity", baseline)):
+            for name, guess in guesses.items():
                 error = (guess.double() - truth.double())[free].square().mean()
                 sums[name] += float(error)
     finally:
@@ -82,27 +112,12 @@ def outside_box(positions: np.ndarray, bounds: Sequence[Sequence[float]]) -> flo
     return float(max(0.0, below.max(), above.max()))
 
 
-def mean_neighbours(
-    positions: np.ndarray,
-    radius: float,
-    bounds: Sequence[Sequence[float]] | None = None,
-    periodic: Sequence[bool] | None = None,
-) -> float:
-    """The mean number of other particles within `radius` of a particle of one frame (N, D),
-    minimum image on periodic axes: how densely the frame is packed."""
-    from gns import radius_graph
-
-    x = np.asarray(positions, dtype=np.float64)
-    if len(x) == 0:
-        return 0.0
-    kwargs: dict[str, Any] = {"self_edges": False}
-    if periodic is not None and any(periodic):
-        if bounds is None:
-            raise ValueError("mean_neighbours: periodic axes need the bounds of the box")
-        box = np.asarray(bounds, dtype=np.float64)
-        x = x - box[:, 0]
-        kwargs.update(box=(box[:, 1] - box[:, 0]).tolist(), periodic=list(periodic))
-    return radius_graph(x, radius, **kwargs).shape[1] / len(x)
+def _deposit_entry(ours: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any]:
+    """A deposit and its ratios as plain JSON values (curves as lists)."""
+    entry: dict[str, Any] = {k: float(v) for k, v in ours.items() if k not in DEPOSIT_CURVES}
+    entry.update(deposit_ratios(ours, truth))
+    entry.update({k: np.asarray(ours[k]).tolist() for k in DEPOSIT_CURVES})
+    return entry
 
 
 def evaluate_rollouts(
@@ -112,44 +127,55 @@ def evaluate_rollouts(
     distribution_every: int = 1,
     bandwidth: float = 0.1,
 ) -> dict[str, Any]:
-    """Rollout metrics of the model and of the constant-velocity baseline.
+    """Rollout metrics of the model, of the constant-velocity baseline and of the static one.
 
     Each rollout needs its ground truth. Kinematic particles (metadata's
-    kinematic_particle_types) are held to the ground truth in both and left out of every
-    metric. Returns {"trajectories": [per-rollout dicts], "mean": {model: {metric: value}}}
-    where a per-rollout dict holds, per model, the scalar metrics ("mse@h", "mse@full",
-    "ot_mean", "mmd_mean", "outside_box", "finite", "density_ratio") and the per-frame "mse"
-    curve. density_ratio is the last frame's mean neighbour count within the connectivity
-    radius over the ground truth's: a simulator that loses volume packs its particles ever
-    closer (above 1), one that lets them fly apart spreads them (below 1).
+    kinematic_particle_types) are held to the ground truth in all three and left out of every
+    metric. Returns {"trajectories": [per-rollout dicts], "mean": {name: {metric: value}}} for
+    the names "model", "constant_velocity", "static" and "ground_truth". A per-rollout dict
+    holds, per name, the scalar metrics and the per-frame curves:
+
+      mse@h, mse@full, ot_mean, mmd_mean   errors against the ground truth (gns.metrics)
+      finite, outside_box                  1 if every frame is finite; how far the farthest
+                                           particle left the box (with bounds)
+      runout, pile_height, neighbours      the last frame's deposit (gns.metrics.deposit): the
+                                           1st-to-99th
+                                           percentile extent of x, the 99th percentile of y
+                                           above the floor (the box's lower y bound, else the
+                                           truth's lowest y at frame 0), the mean neighbour
+                                           count within the connectivity radius
+      runout_ratio, height_ratio, density_ratio
+                                           those three over the ground truth's (1 is right)
+      mse, front_x_p1, front_x_p99         per-frame MSE and the 1st and 99th percentiles of x
+                                           (the fronts) of every predicted frame
+    The "ground_truth" entry has the deposit figures (its ratios are 1), the fronts and
+    outside_box, no errors. Means are over trajectories (of the per-trajectory ratios for the
+    ratios), except outside_box, the worst case. A rollout that diverged has inf for mse@full,
+    OT, MMD and the deposit figures; its file holds the ground truth only up to where it
+    diverged, so that trajectory's baselines and truth are scored on those frames.
     """
     if not rollouts:
         raise ValueError("no rollouts to evaluate")
     per_rollout = [_evaluate_one(r, horizons, distribution_every, bandwidth) for r in rollouts]
     mean: dict[str, dict[str, float]] = {}
-    for name in MODELS:
-        entries = [entry[name] for entry in per_rollout if entry[name] is not None]
-        keys = list(dict.fromkeys(key for e in entries for key in e if key != "mse"))
+    for name in (*MODELS, "ground_truth"):
+        entries = [entry[name] for entry in per_rollout if entry.get(name) is not None]
+        keys = list(dict.fromkeys(key for e in entries for key in e if key not in CURVES))
+        if not keys and name == "ground_truth":  # every rollout diverged at its first step
+            continue
         mean[name] = {}
         for key in keys:
             # A diverged model rollout lacks the later horizons: they count as infinitely wrong.
             values = [e.get(key, np.inf) for e in entries]
             # The worst case, not the mean, is what "inside the box" must mean.
             mean[name][key] = float(np.max(values) if key == "outside_box" else np.mean(values))
-    # The reference for "stays inside the box": an MPM ground truth itself sits a little
-    # outside its nominal bounds (particles rest within a grid cell of the wall).
-    truth_outside = [
-        e["ground_truth_outside_box"] for e in per_rollout if "ground_truth_outside_box" in e
-    ]
-    if truth_outside:
-        mean["ground_truth"] = {"outside_box": max(truth_outside)}
     return {"trajectories": per_rollout, "mean": mean}
 
 
 def _evaluate_one(
     r: Rollout, horizons: Sequence[int | None], distribution_every: int, bandwidth: float
 ) -> dict[str, Any]:
-    """Model and baseline figures of one rollout (see evaluate_rollouts)."""
+    """Model, baseline and ground-truth figures of one rollout (see evaluate_rollouts)."""
     if r.ground_truth_rollout is None:
         raise ValueError(
             f"rollout of trajectory {r.metadata.get('trajectory')} has no ground truth"
@@ -157,33 +183,40 @@ def _evaluate_one(
     diverged_at = r.metadata.get("diverged_at_step")
     entry: dict[str, Any] = {"trajectory": r.metadata.get("trajectory")}
     bounds = r.metadata.get("bounds")
-    radius, periodic = r.metadata.get("connectivity_radius"), r.metadata.get("periodic")
-    if bounds is not None and r.num_steps:
-        entry["ground_truth_outside_box"] = outside_box(r.ground_truth_rollout, bounds)
+    scene = {
+        "radius": r.metadata.get("connectivity_radius"),
+        "bounds": bounds,
+        "periodic": r.metadata.get("periodic"),
+    }
     if diverged_at is not None:
         entry["diverged_at_step"] = int(diverged_at)
     if r.num_steps == 0:  # diverged at its first step: nothing to compare, all infinitely wrong
         entry["model"] = dict.fromkeys(("mse@full", "ot_mean", "mmd_mean"), np.inf)
         entry["model"]["finite"] = 0.0
-        entry["constant_velocity"] = None
+        entry.update(dict.fromkeys(("constant_velocity", "static", "ground_truth")))
         return entry
+    truth = r.ground_truth_rollout
     kinematic = np.isin(r.particle_type, r.metadata.get("kinematic_particle_types", [3]))
-    baseline = constant_velocity_rollout(
-        r.initial_positions,
-        r.num_steps,
-        kinematic_mask=kinematic,
-        ground_truth=r.ground_truth_rollout,
-    )
     free = ~kinematic
-    # The ground truth's packing, the reference of both density ratios, counted once.
-    truth_neighbours = None
-    if radius is not None:
-        last = r.ground_truth_rollout[-1, free]
-        truth_neighbours = mean_neighbours(last, radius, bounds, periodic)
-    for name, predicted in (("model", r.predicted_rollout), ("constant_velocity", baseline)):
+    floor = pile_floor(bounds, r.initial_positions[0])
+    # The ground truth's deposit, the reference of every ratio, computed once.
+    truth_deposit = deposit(truth, free, floor, **scene)
+    entry["ground_truth"] = _deposit_entry(truth_deposit, truth_deposit)
+    if bounds is not None:
+        entry["ground_truth"]["outside_box"] = outside_box(truth, bounds)
+    baselines = {
+        name: extrapolate(
+            r.initial_positions, r.num_steps, kinematic_mask=kinematic, ground_truth=truth
+        )
+        for name, extrapolate in (
+            ("constant_velocity", constant_velocity_rollout),
+            ("static", static_rollout),
+        )
+    }
+    for name, predicted in (("model", r.predicted_rollout), *baselines.items()):
         metrics = evaluate_rollout(
             predicted,
-            r.ground_truth_rollout,
+            truth,
             mask=free,
             horizons=horizons,
             distribution_every=distribution_every,
@@ -196,19 +229,35 @@ def _evaluate_one(
             if key.startswith("mse@") or key in ("ot_mean", "mmd_mean")
         }
         finite = bool(np.isfinite(predicted).all())
+        figures = _deposit_entry(deposit(predicted, free, floor, **scene), truth_deposit)
         if name == "model" and diverged_at is not None:
             # The rollout stopped early: what lies beyond its last finite frame counts as
-            # infinitely wrong, not as absent.
+            # infinitely wrong, not as absent; it never reached the last frame's deposit.
             finite = False
             scalars.update(dict.fromkeys(("mse@full", "ot_mean", "mmd_mean"), np.inf))
+            figures.update({k: np.inf for k in figures if k in DEPOSIT_FIGURES})
         scalars["finite"] = float(finite)
         if bounds is not None:
             scalars["outside_box"] = outside_box(predicted, bounds) if finite else np.inf
-        if truth_neighbours is not None and finite:
-            ours = mean_neighbours(predicted[-1, free], radius, bounds, periodic)
-            scalars["density_ratio"] = ours / truth_neighbours if truth_neighbours else np.nan
-        entry[name] = {**scalars, "mse": metrics["mse"].tolist()}
+        entry[name] = {**scalars, **figures, "mse": metrics["mse"].tolist()}
     return entry
+
+
+def rest_summary(results: Sequence[dict[str, float]], steps: int) -> dict[str, Any]:
+    """The `rest_test` results of several trajectories, held still for `steps` steps:
+    {"steps", "trajectories": the results, "mean": density_ratio's mean and, for how far
+    particles went (max_displacement, outside_box, truth_speed), the worst pile's value}."""
+    if not results:
+        raise ValueError("no rest test results to summarise")
+    worst = ("max_displacement", "outside_box", "truth_speed")
+    return {
+        "steps": int(steps),
+        "trajectories": list(results),
+        "mean": {
+            key: float((np.max if key in worst else np.mean)([r[key] for r in results]))
+            for key in results[0]
+        },
+    }
 
 
 def rest_test(
@@ -224,7 +273,8 @@ def rest_test(
     Sand that the data leaves at rest should stay where it is; a model that loses volume packs
     it ever closer and sinks it into the floor. Returns, over non-kinematic particles:
     density_ratio, the mean neighbour count within the connectivity radius after the rollout
-    over that of the held frame (1 when the pile keeps its packing); max_displacement, how far
+    over that of the held frame (1 when the pile keeps its packing; with no neighbours in the
+    held frame, 1 if there are none after either, else inf); max_displacement, how far
     the farthest particle moved (inf if the rollout diverged); outside_box (with bounds); and
     truth_speed, the largest displacement of the data's own last step, which says how still
     the held frame really was.
@@ -260,7 +310,7 @@ def rest_test(
     before = mean_neighbours(held[free], scene.radius, scene.bounds, scene.periodic)
     after = mean_neighbours(final[free], scene.radius, scene.bounds, scene.periodic)
     moved = np.linalg.norm(final[free].astype(np.float64) - held[free], axis=-1)
-    result["density_ratio"] = after / before if before else np.nan
+    result["density_ratio"] = ratio_of(after, before)
     result["max_displacement"] = float(moved.max(initial=0.0))
     if scene.bounds is not None:
         result["outside_box"] = outside_box(final[None], scene.bounds)

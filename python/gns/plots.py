@@ -1,4 +1,5 @@
-"""The figures of `gns report`: error against run time, error over time, rollout animations.
+"""The figures of `gns report`: error against run time, error over time, the fronts of the sand
+over time, rollout animations.
 
 Drawn with matplotlib's Agg canvas on figures that are never registered with pyplot, so
 nothing here touches a global backend or needs a display; animations are assembled by Pillow
@@ -33,6 +34,7 @@ __all__ = [
     "diverged_frame",
     "error_over_time",
     "error_vs_time",
+    "front_over_time",
     "type_colours",
 ]
 
@@ -64,8 +66,10 @@ class Series:
     """One method (a row of the report's table) in the figures: a short label, wall time per
     frame in seconds (None if unknown), its figures by metric key ("mse@10", "ot@full", ...;
     missing when not computed, inf when it diverged), per-frame curves (frames, values) of
-    MSE and of optimal transport for the error-over-time figure, and the rollout step at which
-    it diverged (None if it did not), after which its values are inf."""
+    MSE and of optimal transport for the error-over-time figure, the rollout step at which it
+    diverged (None if it did not), after which its values are inf, and the fronts of one
+    trajectory, (S, 2): the 1st and 99th percentile of x in every predicted frame
+    (gns.metrics.front_positions), inf after a divergence."""
 
     label: str
     seconds_per_frame: float | None
@@ -73,6 +77,7 @@ class Series:
     mse_curve: tuple[np.ndarray, np.ndarray] | None = None
     ot_curve: tuple[np.ndarray, np.ndarray] | None = None
     diverged_at: int | None = None
+    fronts: np.ndarray | None = None
 
     @property
     def legend(self) -> str:
@@ -245,6 +250,51 @@ def error_over_time(
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_title("MSE per frame (mean over trajectories)", fontsize=10)
     axes[1].set_title("optimal transport at the evaluated frames", fontsize=10)
+    if title:
+        figure.suptitle(title, fontsize=11)
+    _legend_below(figure, handles, labels, 0.94 if title else 1.0)
+    _save_png(figure, path)
+    return figure
+
+
+def front_over_time(
+    series: Sequence[Series],
+    truth: np.ndarray,
+    path: str | os.PathLike[str],
+    first_frame: int = 0,
+    title: str = "",
+) -> Figure:
+    """Where the sand's fronts are over time: the ground truth's fronts, truth (S, 2), the 1st
+    and the 99th percentile of x in every predicted frame, in black, and each method's
+    (Series.fronts) in its colour; frames count from 0 = the first predicted frame, shown as
+    `first_frame`. A method that diverged stops there, with an x at its last finite front.
+    Methods without fronts are left out. Returns the figure (saved to `path`)."""
+    figure = Figure(figsize=(8, 4.6 + 0.25 * len(series) / 2), dpi=100)
+    ax = figure.subplots()
+    styles = _styles(series)
+    frames = np.arange(len(truth)) + first_frame
+    for side in range(2):
+        ax.plot(frames, truth[:, side], color="black", lw=2.5)
+    handles: list[Any] = [Line2D([], [], color="black", lw=2.5)]
+    labels = ["ground truth"]
+    for i, s in enumerate(series):
+        if s.fronts is None:
+            continue
+        fronts, colour = np.asarray(s.fronts, dtype=np.float64), styles[i]["color"]
+        shown = np.where(np.isfinite(fronts), fronts, np.nan)
+        for side in range(2):
+            ax.plot(frames[: len(shown)], shown[:, side], color=colour, lw=1.3)
+        last, bad = _last_finite(fronts[:, 1])
+        if s.diverged_at is not None and bad is not None and last is not None:
+            for side in range(2):
+                _mark_diverged(ax, frames[last], fronts[last, side], colour)
+        marker = "none" if s.diverged_at is None else _DIVERGED_MARKER
+        handles.append(Line2D([], [], color=colour, lw=1.3, marker=marker))
+        labels.append(s.legend)
+    ax.set_xlabel("frame")
+    ax.set_ylabel("x")
+    ax.grid(True, alpha=0.3)
+    ax.set_title("fronts of the sand: 1st and 99th percentile of x (first trajectory)", fontsize=10)
     if title:
         figure.suptitle(title, fontsize=11)
     _legend_below(figure, handles, labels, 0.94 if title else 1.0)

@@ -14,12 +14,22 @@ One row per method, each scored on the same frames of the same held-out trajecto
                       metadata names the preset, seed and draw of every trajectory; for any other
                       dataset these rows are left out and the report says why
   constant velocity   every particle keeps its last velocity (gns.metrics)
+  static              every particle stays where the last input frame has it (gns.metrics):
+                      for sand that comes to rest, much harder to beat late in a rollout
 Errors are gns.metrics' (MSE per frame, optimal transport W2^2, MMD^2 with bandwidth 0.1) over
 the non-kinematic particles, at the horizons asked for: the mean over the first h predicted
 frames, then over trajectories. OT and MMD cost O(N^2) or more per frame, so they are evaluated
 on every k-th predicted frame only (k = `every`), and "@h" for them is the mean over those
 evaluated frames among the first h. Time is wall-clock seconds per simulated frame (one frame
 = the dataset's dt), the mean over every frame of every trajectory.
+
+Where the sand stops (gns.metrics.deposit), from the last frame's non-kinematic particles:
+runout (the 99th minus the 1st percentile of x), pile height (the 99th percentile of y above the
+box's floor) and the mean neighbour count within the dataset's connectivity radius; the table
+has each over the ground truth's (runout_ratio, height_ratio, density_ratio: per trajectory,
+then the mean), table.json the values per trajectory, the truth's own, and the fronts (the 1st
+and 99th percentile of x) of every frame. With rest_steps, every learned row also holds each
+trajectory's last frame still and rolls out from it (gns.evaluate.rest_test).
 
 A learned rollout that diverges (gns.rollout stops it) scores inf from there on: its row says
 where (status, diverged_at_step), the figures mark its last finite point with an x, and the
@@ -33,6 +43,7 @@ earlier report there; nothing is written before every argument has been checked)
                               the table (CSV and JSON parse back to the same rows)
   error_vs_time.png           error at each horizon against ms per frame, one marker per row
   error_over_time.png         MSE per frame and OT at the evaluated frames, per row
+  fronts.png                  the fronts of the first trajectory over time, per row and truth
   rollout_{split}_{i}.gif     ground truth and prediction side by side (and .mp4 with ffmpeg)
   vtk/                        ground_truth.pvd, prediction.pvd + one .vtp per frame (ParaView)
   rollouts/{checkpoint}/      the learned rollouts (gns.rollout's npz schema, for `gns eval`)
@@ -54,7 +65,7 @@ import shutil
 import sys
 import time
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -64,7 +75,16 @@ import numpy as np
 from gns.config import MODEL_NAMES
 from gns.data.atomic import write_bytes_atomic
 from gns.machine import cpu_name
-from gns.metrics import constant_velocity_rollout, evaluate_rollout
+from gns.metrics import (
+    DEPOSIT_CURVES,
+    DEPOSIT_FIGURES,
+    constant_velocity_rollout,
+    deposit,
+    deposit_ratios,
+    evaluate_rollout,
+    pile_floor,
+    static_rollout,
+)
 
 __all__ = [
     "DEFAULT_EVERY",
@@ -85,7 +105,11 @@ DEFAULT_HORIZONS: tuple[int | None, ...] = (1, 10, 50, None)
 # 2-core CPU), so a 155-frame rollout of a poor model costs ~25 s per row and trajectory.
 DEFAULT_EVERY = 10
 METRICS = ("mse", "ot", "mmd")
+# The deposit's columns (gns.metrics.deposit_ratios): the last frame's over the truth's.
+DEPOSIT_COLUMNS = ("runout_ratio", "height_ratio", "density_ratio")
 TIMING_PARTS = ("graph", "features", "model", "integration")
+# The baselines' rows (method names).
+CONSTANT_VELOCITY, STATIC = "constant velocity", "static"
 
 
 def _say(enabled: bool) -> Callable[[str], None]:
@@ -203,11 +227,19 @@ def score(
     mask: np.ndarray,
     horizons: Sequence[int | None],
     every: int,
+    *,
+    floor: float | None = None,
+    radius: float | None = None,
+    bounds: Sequence[Sequence[float]] | None = None,
+    periodic: Sequence[bool] | None = None,
 ) -> dict[str, Any]:
     """The figures of one rollout, predicted and truth (S, N, D), over the particles in mask
     (N,) bool: {"mse@h", "ot@h", "mmd@h" for each horizon no longer than S; "mse": (S,)
-    per-frame MSE; "frames", "ot": the evaluated frames and their W2^2}. NaN in `predicted`
-    (a diverged rollout, padded) scores inf, never a finite number."""
+    per-frame MSE; "frames", "ot": the evaluated frames and their W2^2}, and the deposit of
+    the last frame (gns.metrics.deposit and deposit_ratios): "runout", "pile_height" (with a
+    floor), "neighbours" (with a radius), "runout_ratio", "height_ratio", "density_ratio" (over
+    the truth's), and the fronts "front_x_p1", "front_x_p99" (S,). NaN in `predicted` (a
+    diverged rollout, padded) scores inf, never a finite number."""
     m = evaluate_rollout(
         predicted,
         truth,
@@ -230,18 +262,75 @@ def score(
                 evaluated = m[metric] if h is None else m[metric][m["frames"] < h]
                 out[key] = float(np.mean(evaluated))
     out.update(mse=m["mse"], frames=m["frames"], ot=m["ot"])
+    ours, theirs = (
+        deposit(positions, mask, floor, radius=radius, bounds=bounds, periodic=periodic)
+        for positions in (predicted, truth)
+    )
+    out.update(ours)
+    out.update(deposit_ratios(ours, theirs))
     return out
+
+
+@dataclass(frozen=True)
+class _Scoring:
+    """How every row is scored, the same for all: the frames from `history` on, the particles
+    not of `kinematic_types`, the horizons, OT and MMD on every `every`-th predicted frame, and
+    the dataset's box (the floor of the pile height), connectivity radius and periodic axes
+    for the deposit."""
+
+    history: int
+    kinematic_types: tuple[int, ...]
+    horizons: tuple[int | None, ...]
+    every: int
+    bounds: tuple[tuple[float, float], ...] | None = None
+    radius: float | None = None
+    periodic: tuple[bool, ...] | None = None
+
+    def free(self, trajectory: Any) -> np.ndarray:
+        """(N,) bool: the particles that count."""
+        return ~_kinematic(trajectory.particle_type, self.kinematic_types)
+
+    def truth(self, trajectory: Any) -> np.ndarray:
+        """(S, N, D): the frames every row predicts."""
+        return np.asarray(trajectory.positions[self.history :])
+
+    def _scene(self, trajectory: Any) -> dict[str, Any]:
+        floor = pile_floor(self.bounds, trajectory.positions[0])
+        return {"floor": floor, "radius": self.radius, "bounds": self.bounds}
+
+    def __call__(self, predicted: np.ndarray, trajectory: Any) -> dict[str, Any]:
+        """`score` of a prediction (S, N, D) of the trajectory."""
+        return score(
+            predicted,
+            self.truth(trajectory),
+            self.free(trajectory),
+            self.horizons,
+            self.every,
+            periodic=self.periodic,
+            **self._scene(trajectory),
+        )
+
+    def ground_truth(self, trajectory: Any) -> dict[str, Any]:
+        """The deposit of the trajectory's own frames (gns.metrics.deposit)."""
+        return deposit(
+            self.truth(trajectory),
+            self.free(trajectory),
+            periodic=self.periodic,
+            **self._scene(trajectory),
+        )
 
 
 @dataclass
 class Row:
     """One method of the table. role: "learned" (a checkpoint), "mpm" (the reference simulator;
-    native: at the settings that made the data) or "baseline" (constant velocity). values:
-    metric key -> mean over trajectories (inf: diverged; missing: not computed); split:
-    TIMING_PARTS -> seconds per frame (learned rows only), whose sum is seconds_per_frame;
-    curve, ot_curve: per-frame means for the error-over-time figure; diverged: (trajectory,
-    step) of every rollout whose error stops being finite at that step (0-based: the step that
-    predicts frame C + 1 + step)."""
+    native: at the settings that made the data) or "baseline" (constant velocity, static).
+    values: metric key (and deposit figure, DEPOSIT_FIGURES) -> mean over trajectories (inf:
+    diverged; missing: not computed); split: TIMING_PARTS -> seconds per frame (learned rows
+    only), whose sum is seconds_per_frame; curve, ot_curve: per-frame means for the
+    error-over-time figure; diverged: (trajectory, step) of every rollout whose error stops
+    being finite at that step (0-based: the step that predicts frame C + 1 + step); deposits:
+    per trajectory, its deposit figures and fronts (DEPOSIT_FIGURES, DEPOSIT_CURVES); rest:
+    gns.evaluate.rest_summary of the rest test (learned rows, when asked for)."""
 
     method: str
     setting: str
@@ -257,11 +346,20 @@ class Row:
     role: str = "learned"
     native: bool = False
     diverged: list[tuple[int, int]] = field(default_factory=list)
+    deposits: list[dict[str, Any]] = field(default_factory=list)
+    rest: dict[str, Any] | None = None
 
     def add_scores(self, scores: Sequence[dict[str, Any]], trajectories: Sequence[int]) -> None:
         """Means over the trajectories' scores (score's output, one per trajectory index)."""
-        keys = list(dict.fromkeys(k for s in scores for k in s if "@" in k))
+        keys = [k for k in dict.fromkeys(k for s in scores for k in s) if _averaged(k)]
         self.values = {k: float(np.mean([s[k] for s in scores])) for k in keys}
+        self.deposits = [
+            {
+                "trajectory": index,
+                **{k: s[k] for k in (*DEPOSIT_FIGURES, *DEPOSIT_CURVES) if k in s},
+            }
+            for index, s in zip(trajectories, scores, strict=True)
+        ]
         self.trajectories = len(scores)
         self.curve = np.mean([s["mse"] for s in scores], axis=0)
         self.ot_curve = (scores[0]["frames"], np.mean([s["ot"] for s in scores], axis=0))
@@ -288,8 +386,14 @@ class Row:
         return f"{where} ({len(self.diverged)} of {of})"
 
 
+def _averaged(key: str) -> bool:
+    """Whether a key of score's output is a figure that Row.values holds the mean of."""
+    return "@" in key or key in DEPOSIT_FIGURES
+
+
 def table_columns(horizons: Sequence[int | None], steps: int) -> list[str]:
-    """The table's columns; horizons longer than the rollout (steps frames) have none."""
+    """The table's columns; horizons longer than the rollout (steps frames) have none. The
+    deposit's ratios are of the last frame, so of the full horizon."""
     keys = [
         f"{metric}@{'full' if h is None else h}"
         for metric in METRICS
@@ -304,6 +408,7 @@ def table_columns(horizons: Sequence[int | None], steps: int) -> list[str]:
         "ms_per_frame",
         *parts,
         *keys,
+        *DEPOSIT_COLUMNS,
         "trajectories",
         "diverged_at_step",
         "status",
@@ -386,20 +491,20 @@ def _learned_row(
     state: dict[str, Any],
     trajectories: list[Any],
     indices: list[int],
-    history: int,
-    kinematic_types: Sequence[int],
-    horizons: Sequence[int | None],
-    every: int,
+    scoring: _Scoring,
     device: Any,
     rollouts_dir: Path,
     split: str,
     dataset_name: str,
+    rest_steps: int,
     say: Callable[[str], None],
 ) -> tuple[Row, list[np.ndarray]]:
     """Roll the checkpoint (`state`, as read from the file `checkpoint`) out on every trajectory
-    (timed), save the rollouts, score them. Returns the row and the predictions (S, N, D) per
-    trajectory, NaN after a divergence."""
+    (timed), score the rollouts, save them with their deposit (Rollout.metrics), and with
+    rest_steps > 0 run the rest test on every trajectory. Returns the row and the predictions
+    (S, N, D) per trajectory, NaN after a divergence."""
     from gns.checkpoints import simulator_from_checkpoint
+    from gns.evaluate import rest_summary, rest_test
     from gns.rollout import RolloutDiverged, rollout, save_rollout
 
     step = state.get("step")
@@ -408,7 +513,8 @@ def _learned_row(
     say(f"rolling out {setting} on {len(trajectories)} trajectories")
     # One short untimed rollout first: the first call pays for lazy initialisation (allocator,
     # kernels), which is not the cost of simulating a frame.
-    rollout(simulator, trajectories[0], num_steps=min(2, trajectories[0].num_frames - history))
+    first = trajectories[0]
+    rollout(simulator, first, num_steps=min(2, first.num_frames - scoring.history))
     scores, predictions, seconds, ran = [], [], [], []
     rollouts_dir.mkdir(parents=True, exist_ok=True)
     for index, trajectory in zip(indices, trajectories, strict=True):
@@ -418,14 +524,15 @@ def _learned_row(
         except RolloutDiverged as err:
             # Its steps before the divergence; the NaN padding below scores the rest as inf.
             result = err.rollout
-        save_rollout(rollouts_dir / f"rollout_{split}_{index}.npz", result)
         ran.append(result.metadata)
         say(f"  trajectory {index}: {result.num_steps} steps rolled out; scoring")
-        truth = trajectory.positions[history:]
-        predicted = np.full(truth.shape, np.nan, dtype=np.float64)
+        predicted = np.full(scoring.truth(trajectory).shape, np.nan, dtype=np.float64)
         predicted[: result.num_steps] = result.predicted_rollout
-        mask = ~_kinematic(trajectory.particle_type, kinematic_types)
-        scores.append(score(predicted, truth, mask, horizons, every))
+        scores.append(scoring(predicted, trajectory))
+        # Its deposit travels with the saved rollout; the fronts of the frames it has.
+        result.metrics.update({k: scores[-1][k] for k in DEPOSIT_FIGURES if k in scores[-1]})
+        result.metrics.update({k: scores[-1][k][: result.num_steps] for k in DEPOSIT_CURVES})
+        save_rollout(rollouts_dir / f"rollout_{split}_{index}.npz", result)
         predictions.append(predicted)
         seconds.append(np.stack([result.timings[part] for part in TIMING_PARTS]))
     timings = np.concatenate(seconds, axis=1)  # (parts, all steps of all trajectories)
@@ -439,34 +546,63 @@ def _learned_row(
     if row.diverged:
         # gns.rollout stops at a non-finite position or at a particle far outside the domain.
         row.status = "diverged (non-finite or escaped particles): " + row.divergence()
+    if rest_steps:
+        say(f"  rest test: the last frames held still for {rest_steps} steps")
+        held = [rest_test(simulator, t, rest_steps, device=device) for t in trajectories]
+        row.rest = rest_summary(held, rest_steps)
     return row, predictions
 
 
-def _constant_velocity_row(
+def _baseline_row(
+    method: str,
+    setting: str,
+    extrapolate: Callable[..., np.ndarray],
     trajectories: list[Any],
     indices: list[int],
-    history: int,
-    kinematic_types: Sequence[int],
-    horizons: Sequence[int | None],
-    every: int,
+    scoring: _Scoring,
 ) -> Row:
+    """A baseline's row: `extrapolate` (gns.metrics' constant_velocity_rollout or
+    static_rollout) from the input frames of every trajectory, timed and scored."""
     scores, elapsed, frames = [], 0.0, 0
     for trajectory in trajectories:
-        positions = trajectory.positions
-        truth = positions[history:]
-        kinematic = _kinematic(trajectory.particle_type, kinematic_types)
+        truth = scoring.truth(trajectory)
+        kinematic = ~scoring.free(trajectory)
         start = time.perf_counter()
-        predicted = constant_velocity_rollout(
-            positions[:history], len(truth), kinematic_mask=kinematic, ground_truth=truth
+        predicted = extrapolate(
+            trajectory.positions[: scoring.history],
+            len(truth),
+            kinematic_mask=kinematic,
+            ground_truth=truth,
         )
         elapsed += time.perf_counter() - start
         frames += len(truth)
-        scores.append(score(predicted, truth, ~kinematic, horizons, every))
-    row = Row("constant velocity", "x(t+1) = 2 x(t) - x(t-1)", "cpu, numpy", role="baseline")
-    row.short = row.method
+        scores.append(scoring(predicted, trajectory))
+    row = Row(method, setting, "cpu, numpy", role="baseline", short=method)
     row.seconds_per_frame = elapsed / frames
     row.add_scores(scores, indices)
     return row
+
+
+def _constant_velocity_row(trajectories: list[Any], indices: list[int], scoring: _Scoring) -> Row:
+    return _baseline_row(
+        CONSTANT_VELOCITY,
+        "x(t+1) = 2 x(t) - x(t-1)",
+        constant_velocity_rollout,
+        trajectories,
+        indices,
+        scoring,
+    )
+
+
+def _static_row(trajectories: list[Any], indices: list[int], scoring: _Scoring) -> Row:
+    return _baseline_row(
+        STATIC,
+        "x(t+1) = x(t): the last input frame held",
+        static_rollout,
+        trajectories,
+        indices,
+        scoring,
+    )
 
 
 def _dataset_name(data: Path, metadata: Any) -> str:
@@ -541,10 +677,7 @@ def _mpm_rows(
     plan: _MpmPlan,
     trajectories: list[Any],
     indices: list[int],
-    history: int,
-    kinematic_types: Sequence[int],
-    horizons: Sequence[int | None],
-    every: int,
+    scoring: _Scoring,
     say: Callable[[str], None],
 ) -> list[Row]:
     """The reference simulator's rows: each of the plan's settings on every trajectory."""
@@ -579,9 +712,7 @@ def _mpm_rows(
                 failures.append(f"trajectory {index}: {err}")
                 continue
             say(f"  trajectory {index}: simulated; scoring")
-            truth = trajectory.positions[history:]
-            mask = ~_kinematic(trajectory.particle_type, kinematic_types)
-            scores.append(score(result.positions[history:], truth, mask, horizons, every))
+            scores.append(scoring(result.positions[scoring.history :], trajectory))
             seconds.append(result.seconds)
             substeps.append(result.substeps)
         if failures:
@@ -607,22 +738,48 @@ def _format(value: Any) -> str:
     return str(value)
 
 
+def _grid(header: Sequence[str], lines: Sequence[Sequence[str]]) -> str:
+    """A markdown table of the cells (strings) under `header`."""
+    text = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    text += ["| " + " | ".join(cell.replace("|", "/") for cell in line) + " |" for line in lines]
+    return "\n".join(text) + "\n"
+
+
+def _cell(value: float | None) -> str:
+    """A figure in a table: 3 significant digits, "inf" (diverged) or "n/a" (not computed)."""
+    if value is not None and math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return _format(value if value is None or math.isfinite(value) else None)
+
+
 def _markdown_table(rows: Sequence[Row], columns: Sequence[str]) -> str:
     """The table for humans: the time split in one column, numbers to 3 figures."""
-    metric_columns = [c for c in columns if "@" in c]
+    fixed = {"method", "setting", "device", "ms_per_frame", "trajectories", "diverged_at_step"}
+    fixed |= {"status", *(f"{p}_ms" for p in TIMING_PARTS)}
+    figures = [c for c in columns if c not in fixed]
     header = ["method", "setting", "device", "ms/frame", "graph / features / model / integr. ms"]
-    header += [c.replace("@", " @") for c in metric_columns] + ["status"]
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    header += [c.replace("@", " @").replace("_", " ") for c in figures] + ["status"]
+    lines = []
     for row in rows:
         record = _record(row, columns)
         split = " / ".join(_format(record[f"{p}_ms"]) for p in TIMING_PARTS) if row.split else ""
         cells = [row.method, row.setting, row.device, _format(record["ms_per_frame"]), split]
-        for c in metric_columns:
-            value = row.values.get(c)
-            cells.append("inf" if value == math.inf else _format(record[c]))
-        cells.append(row.status.replace("|", "/"))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        cells += [_cell(row.values.get(c)) for c in figures]
+        lines.append([*cells, row.status])
+    return _grid(header, lines)
+
+
+def _rest_table(rows: Sequence[Row]) -> str:
+    """The rest test of every learned row that ran it (Row.rest), as a markdown table."""
+    header = ["method", "setting", "density ratio (mean)", "largest displacement (worst)"]
+    header += ["outside box (worst)", "data's last step (worst)"]
+    keys = ("density_ratio", "max_displacement", "outside_box", "truth_speed")
+    lines = [
+        [row.method, row.setting, *(_cell(row.rest["mean"].get(k)) for k in keys)]
+        for row in rows
+        if row.rest is not None
+    ]
+    return _grid(header, lines)
 
 
 def _csv_text(records: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:
@@ -662,6 +819,7 @@ def report(
     mpm: Sequence[str] = ("auto",),
     animation_frames: int = 120,
     vtk_every: int | None = None,
+    rest_steps: int = 0,
     device: str = "auto",
     progress: bool = True,
     command: str | None = None,
@@ -675,7 +833,9 @@ def report(
     full rollout). every: OT and MMD on every k-th predicted frame. mpm: MPM settings (see
     parse_mpm_variants). animation_frames: frames in the GIF (0: no animation). vtk_every: VTK
     frame stride (0: no VTK files; default: at most about 100 frames, as ASCII VTK takes ~30
-    bytes per particle and frame). command, notes: shown in the report. out: default
+    bytes per particle and frame). rest_steps: hold each trajectory's last frame still and roll
+    every checkpoint out this many steps from it (gns.evaluate.rest_test; 0: no rest test).
+    command, notes: shown in the report. out: default
     RUN/report_SPLIT; it must be missing, empty or an earlier report, which the new one replaces
     when it is complete (a failed report leaves `out` as it was).
     """
@@ -694,6 +854,7 @@ def report(
         ("every", every, 1),
         ("animation_frames", animation_frames, 0),
         ("vtk_every", 0 if vtk_every is None else vtk_every, 0),
+        ("rest_steps", rest_steps, 0),
     ):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name} must be a whole number >= {low}, got {value!r}")
@@ -717,9 +878,9 @@ def report(
         )
     indices = list(range(trajectories or len(dataset)))
     chosen = list(dict.fromkeys(_checkpoint(run, which) for which in checkpoints))
-    kinematic_types = sorted(dataset.metadata.kinematic_particle_types)
+    metadata = dataset.metadata
     items = [dataset[i] for i in indices]
-    plan = _mpm_plan(dataset.metadata, split, items, indices, mpm)
+    plan = _mpm_plan(metadata, split, items, indices, mpm)
     # Each file read and CRC-checked once, here.
     states = [load_checkpoint(path) for path in chosen]
     history = states[0]["config"]["model"]["velocity_history"] + 1
@@ -740,6 +901,15 @@ def report(
             f"the {split} trajectories differ in length ({sorted({t.num_frames for t in items})}"
             "); horizon means over them would mix different frames"
         )
+    scoring = _Scoring(
+        history,
+        tuple(sorted(metadata.kinematic_particle_types)),
+        horizons,
+        every,
+        metadata.bounds,
+        metadata.default_connectivity_radius,
+        tuple(metadata.periodic_boundary_conditions) or None,
+    )
 
     with _output_folder(out) as folder:
         rows: list[Row] = []
@@ -754,14 +924,12 @@ def report(
                 state,
                 items,
                 indices,
-                history,
-                kinematic_types,
-                horizons,
-                every,
+                scoring,
                 torch_device,
                 folder / "rollouts" / stem,
                 split,
                 str(data),
+                rest_steps,
                 say,
             )
             rows.append(row)
@@ -774,16 +942,16 @@ def report(
             left_out.append("MPM rows: none asked for (--mpm none)")
         else:
             say("MPM rows")
-            rows += _mpm_rows(plan, items, indices, history, kinematic_types, horizons, every, say)
+            rows += _mpm_rows(plan, items, indices, scoring, say)
             left_out.append(
                 "MPM with fewer particles: its particles would not be the data's, so MSE "
                 "(particle i against particle i) could not be computed; only coarser grids and "
                 "fewer substeps are compared"
             )
-        say("constant-velocity baseline")
-        rows.append(
-            _constant_velocity_row(items, indices, history, kinematic_types, horizons, every)
-        )
+        say("baselines: constant velocity, static")
+        rows.append(_constant_velocity_row(items, indices, scoring))
+        rows.append(_static_row(items, indices, scoring))
+        truth = _truth_deposits(items, indices, scoring)
         columns = table_columns(horizons, steps)
         dropped = [h for h in horizons if h is not None and h > steps]
         if dropped:
@@ -794,7 +962,7 @@ def report(
 
         files = _write_tables(folder, rows, columns)
         say("figures")
-        files.update(_write_figures(folder, rows, horizons, steps, history))
+        files.update(_write_figures(folder, rows, horizons, steps, history, truth))
         first = items[0]
         files.update(
             _write_media(
@@ -804,7 +972,7 @@ def report(
                 predictions[0],
                 history,
                 split,
-                dataset.metadata,
+                metadata,
                 rows[0].short,
                 animation_frames,
                 vtk_every,
@@ -816,7 +984,7 @@ def report(
             "command": command,
             "run": str(run),
             "data": str(data),
-            "dataset": _dataset_name(data, dataset.metadata),
+            "dataset": _dataset_name(data, metadata),
             "split": split,
             "checkpoints": [str(p) for p in chosen],
             "trajectories": indices,
@@ -826,19 +994,42 @@ def report(
             "horizons": list(horizons),
             "steps": steps,
             "every": every,
-            "dt": dataset.metadata.dt,
+            "dt": metadata.dt,
+            "floor": pile_floor(metadata.bounds, first.positions[0]),
+            "radius": metadata.default_connectivity_radius,
+            "rest_steps": rest_steps,
             "machine": info,
             "device": str(torch_device),
             "seconds": time.perf_counter() - started,
             "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
             "notes": list(notes),
             "left_out": left_out,
-            "conclusion": conclusion(rows, columns, steps),
+            "conclusion": conclusion(rows, columns, steps, truth["mean"]),
         }
-        _write_json(
-            folder / "table.json",
-            {"columns": columns, "rows": [_record(r, columns) for r in rows], "context": context},
-        )
+        payload = {
+            "columns": columns,
+            "rows": [_record(r, columns) for r in rows],
+            "deposits": {
+                "ground_truth": truth,
+                "rows": [
+                    {
+                        "method": r.method,
+                        "setting": r.setting,
+                        "mean": {k: r.values[k] for k in DEPOSIT_FIGURES if k in r.values},
+                        "trajectories": r.deposits,
+                    }
+                    for r in rows
+                ],
+            },
+            "context": context,
+        }
+        if rest_steps:
+            payload["rest"] = [
+                {"method": r.method, "setting": r.setting, **r.rest}
+                for r in rows
+                if r.rest is not None
+            ]
+        _write_json(folder / "table.json", _json_values(payload))
         files["json"] = folder / "table.json"
         markdown = _markdown_report(rows, columns, files, context, folder)
         write_bytes_atomic(folder / "report.md", markdown.encode("utf-8"))
@@ -850,6 +1041,34 @@ def report(
     say(f"wrote {out / 'report.md'} in {context['seconds']:.0f} s")
     files = {role: out / path.relative_to(folder) for role, path in files.items()}
     return ReportResult(out, rows, files, left_out)
+
+
+def _truth_deposits(
+    trajectories: list[Any], indices: list[int], scoring: _Scoring
+) -> dict[str, Any]:
+    """The ground truth's own deposit: {"mean": scalars over the trajectories, "trajectories":
+    [figures and fronts of each]}."""
+    deposits = [
+        {"trajectory": index, **scoring.ground_truth(t)}
+        for index, t in zip(indices, trajectories, strict=True)
+    ]
+    scalars = [k for k in DEPOSIT_FIGURES if k in deposits[0]]
+    mean = {k: float(np.mean([d[k] for d in deposits])) for k in scalars}
+    return {"mean": mean, "trajectories": deposits}
+
+
+def _json_values(value: Any) -> Any:
+    """`value` as strict JSON values: arrays as lists, non-finite numbers as None (the figure
+    does not exist: a rollout that diverged before it)."""
+    if isinstance(value, dict):
+        return {k: _json_values(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [_json_values(v) for v in value]
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
 
 
 # Files that only a report folder holds: an existing `out` with one of them may be replaced.
@@ -938,8 +1157,9 @@ def _write_figures(
     horizons: Sequence[int | None],
     steps: int,
     history: int,
+    truth: dict[str, Any],
 ) -> dict[str, Path]:
-    from gns.plots import Series, error_over_time, error_vs_time
+    from gns.plots import Series, error_over_time, error_vs_time, front_over_time
 
     shown = [str(h) if h is not None else "full" for h in horizons if h is None or h <= steps]
     series = [
@@ -950,15 +1170,24 @@ def _write_figures(
             None if r.curve is None else (np.arange(len(r.curve)), r.curve),
             r.ot_curve,
             r.diverged_at,
+            _fronts(r.deposits[0]) if r.deposits else None,
         )
         for r in rows
     ]
     error_vs_time(series, METRICS, shown, out / "error_vs_time.png", "error against run time")
     error_over_time(series, out / "error_over_time.png", first_frame=history)
+    fronts = _fronts(truth["trajectories"][0])
+    front_over_time(series, fronts, out / "fronts.png", first_frame=history)
     return {
         "error_vs_time": out / "error_vs_time.png",
         "error_over_time": out / "error_over_time.png",
+        "fronts": out / "fronts.png",
     }
+
+
+def _fronts(deposit: dict[str, Any]) -> np.ndarray:
+    """(S, 2): a deposit's fronts (the 1st and the 99th percentile of x) side by side."""
+    return np.stack([deposit[k] for k in DEPOSIT_CURVES], axis=1)
 
 
 def _write_media(
@@ -1089,16 +1318,89 @@ def _lowest(rows: Sequence[Row], key: str) -> Row | None:
     return min(scored, key=lambda r: r.values[key]) if scored else None
 
 
-def conclusion(rows: Sequence[Row], columns: Sequence[str], steps: int) -> list[str]:
+def _ratio_text(ratio: float) -> str:
+    """A ratio to the truth to two figures: "0.43x", "1.6x", "12x"."""
+    if ratio < 1:
+        return f"{ratio:.2f}x"
+    return f"{ratio:.1f}x" if ratio < 9.95 else _times(ratio)
+
+
+def _deposit_sentence(
+    best: Row, static: Row | None, truth: Mapping[str, float] | None
+) -> str | None:
+    """Where the best learned row's sand stops and how high it piles against the truth, and
+    the static baseline's; None when the figures are not there. The widths and heights are
+    means over trajectories; the ratios are the table's (per trajectory, then the mean), which
+    the means need not divide to."""
+    if truth is None or "runout" not in truth or _finite(best, "runout_ratio") is None:
+        return None
+    height = "pile_height" in truth and _finite(best, "height_ratio") is not None
+
+    def size(row: Row, against: bool) -> str:
+        """ "0.31 wide [against the truth's 0.72] and piles 0.08 high [against 0.05]"."""
+        text = f"{_format(row.values['runout'])} wide"
+        text += f" against the truth's {_format(truth['runout'])}" if against else ""
+        if height and _finite(row, "height_ratio") is not None:
+            text += f" and piles {_format(row.values['pile_height'])} high"
+            text += f" against {_format(truth['pile_height'])}" if against else ""
+        return text
+
+    def ratios(row: Row) -> list[tuple[str, str]]:
+        """(figure, "0.43x") for each finite ratio of the row."""
+        named = {"runout": "runout_ratio", "height": "height_ratio", "density": "density_ratio"}
+        values = [(name, _finite(row, key)) for name, key in named.items()]
+        return [(name, _ratio_text(v)) for name, v in values if v is not None]
+
+    ours = ratios(best)
+    sentence = (
+        f"Where the sand stops (the last frame, means over trajectories): {best.short}'s "
+        f"deposit is {size(best, True)}; per trajectory its {ours[0][0]} is {ours[0][1]} the "
+        "truth's"
+        + "".join(f", its {name} {value}" for name, value in ours[1:])
+        + " (the table's ratios)"
+    )
+    if static is not None and _finite(static, "runout_ratio") is not None:
+        theirs = ", ".join(f"{name} {value}" for name, value in ratios(static))
+        sentence += f"; the static baseline's is {size(static, False)} ({theirs})"
+    return sentence + "."
+
+
+def _rest_sentence(best: Row) -> str | None:
+    """How the best learned row kept the piles held still, when the rest test ran."""
+    if best.rest is None:
+        return None
+    figures, steps = best.rest["mean"], best.rest["steps"]
+    held = f"Held still for {_count(steps, 'step')}, the last frames under {best.short}"
+    moved = figures.get("max_displacement", math.inf)
+    if not math.isfinite(moved):
+        return f"{held} diverged (see the rest test)."
+    sentence = f"{held} move by at most {_format(moved)}"
+    if math.isfinite(speed := figures.get("truth_speed", math.nan)):
+        sentence += f" (the data's own last step: at most {_format(speed)})"
+    if math.isfinite(density := figures.get("density_ratio", math.nan)):
+        sentence += f" and end {_ratio_text(density)} as densely packed as they started"
+    return sentence + "."
+
+
+def conclusion(
+    rows: Sequence[Row],
+    columns: Sequence[str],
+    steps: int,
+    truth: Mapping[str, float] | None = None,
+) -> list[str]:
     """The table in plain words, computed from it: how the best learned row compares with
-    constant velocity over the longest horizon and at what cost against the reference simulator
-    at its native settings, which method has the lowest MSE at each horizon, how the learned
-    model compares with the cheaper MPM settings, and which learned rows diverged. One sentence
-    a list entry; true for any outcome (a learned model worse than the baseline, every learned
-    row diverged, no MPM rows)."""
+    constant velocity (and the static baseline, when there is its row) over the longest horizon
+    and at what cost against the reference simulator at its native settings, where its sand
+    stops and how high it piles against `truth` (the ground truth's mean deposit, see
+    _truth_deposits) and the static baseline's, how it kept a pile held still (when the rest
+    test ran), which method has the lowest MSE at each horizon, how the learned model compares
+    with the cheaper MPM settings, and which learned rows diverged. One sentence a list entry;
+    true for any outcome (a learned model worse than the baseline, every learned row diverged,
+    no MPM rows)."""
     keys = [c for c in columns if c.startswith("mse@")]
     learned = [r for r in rows if r.role == "learned"]
-    baseline = next((r for r in rows if r.role == "baseline"), None)
+    baseline = next((r for r in rows if r.method == CONSTANT_VELOCITY), None)
+    static = next((r for r in rows if r.method == STATIC and r.role == "baseline"), None)
     reference = next((r for r in rows if r.native), None)
     cheaper = [r for r in rows if r.role == "mpm" and not r.native]
     if not keys or baseline is None:
@@ -1118,6 +1420,9 @@ def conclusion(rows: Sequence[Row], columns: Sequence[str], steps: int) -> list[
             f"{_mse_against(best.values[key], baseline.values[key], 'constant velocity')} "
             f"({_format(best.values[key])} against {_format(baseline.values[key])})"
         )
+        if static is not None and (held := _finite(static, key)) is not None:
+            versus = _mse_against(best.values[key], held, "the static baseline")
+            sentence += f" and {versus} ({_format(held)})"
         if best.seconds_per_frame is not None:
             sentence += f" at {_ms(best.seconds_per_frame)} per frame"
             if reference is not None and reference.seconds_per_frame is not None:
@@ -1132,6 +1437,9 @@ def conclusion(rows: Sequence[Row], columns: Sequence[str], steps: int) -> list[
         elif reference.seconds_per_frame is None:
             sentence += "; the reference simulator failed at its native settings (see status)"
         sentences.append(sentence + ".")
+        for extra in (_deposit_sentence(best, static, truth), _rest_sentence(best)):
+            if extra is not None:
+                sentences.append(extra)
 
     winners = []
     for k in keys:
@@ -1216,7 +1524,7 @@ def _method_lines(context: dict[str, Any]) -> list[str]:
     h, s, k = context["history"], context["steps"], context["every"]
     return [
         f"- Every row predicts frames {h} to {h + s - 1} ({s} frames) of each trajectory; the "
-        f"learned model and the baseline start from the {h} ground-truth frames before them. "
+        f"learned model and the baselines start from the {h} ground-truth frames before them. "
         "MPM rows are re-run from frame 0 with the scene and seed that made the data, so "
         "their error at a frame includes their own drift since frame 0 (the simulator's state "
         "holds more than positions and cannot be restarted from the data).",
@@ -1232,15 +1540,48 @@ def _method_lines(context: dict[str, Any]) -> list[str]:
             if h is None or h <= s
         )
         + " frames).",
+        "- Baselines: constant velocity (every particle keeps the velocity between the last two "
+        f"input frames) and static (every particle stays where the last input frame, frame "
+        f"{h - 1}, has it). For sand that comes to rest the static baseline is the harder one "
+        "to beat late in a rollout.",
+        "- Runout ratio, height ratio, density ratio: where the sand stops, from the last "
+        f"frame (frame {h + s - 1}) of each rollout, over the non-kinematic particles, each "
+        "over the ground truth's: per trajectory, then the mean over trajectories (1 is right; "
+        "so the mean values the conclusion quotes need not divide to it exactly). Runout: the "
+        "99th minus the 1st percentile of x, how wide the deposit lies (the 1% of particles "
+        "farthest out on either side do not count). Height: the 99th percentile of y minus the "
+        f"floor, the box's lower y bound {context['floor']:g}. Density: the mean number of "
+        f"other particles within the connectivity radius R = {context['radius']:g}. "
+        "Percentiles interpolate linearly between sorted values. table.json's `deposits` "
+        "holds every row's and the ground truth's values per trajectory and the fronts (the "
+        "1st and 99th percentile of x) of every frame, drawn for the first trajectory in "
+        "fronts.png.",
+        *_rest_lines(context),
         "- Time: wall-clock per simulated frame, mean over every frame of every trajectory. "
         "Learned rows: graph building + features + model + integration (the split adds up to "
         "the total; one untimed warm-up rollout first). MPM: the whole frame (substeps, "
-        "transfers). Constant velocity: the numpy extrapolation.",
+        "transfers). Baselines: the numpy extrapolation.",
         "- A value of 0 is exact (the deterministic simulator reproducing its own data); "
         "`inf` means the rollout diverged before the end of that horizon; `n/a`: not computed "
         "(see status). A diverged row's status (and table.csv's diverged_at_step) gives the "
         f"rollout step it diverged at (step k predicts frame {h} + k); the figures mark its "
         "last finite point with an x.",
+    ]
+
+
+def _rest_lines(context: dict[str, Any]) -> list[str]:
+    """What the rest test is, when it ran."""
+    if not context["rest_steps"]:
+        return []
+    return [
+        "- Rest test: each trajectory's last frame held still (the model's "
+        f"{context['history']} input frames all equal to it, so every velocity is zero) and "
+        f"rolled out {_count(context['rest_steps'], 'step')} by each learned model "
+        "(gns.evaluate.rest_test): sand the data leaves at rest should stay where it is. "
+        "Density ratio: the mean neighbour count within R after the steps over that of the "
+        "held frame, the mean over trajectories; the largest displacement of any particle, how "
+        "far any is outside the box and the data's own last step (how still the held frame "
+        "really was): the worst trajectory's."
     ]
 
 
@@ -1272,7 +1613,13 @@ def _markdown_report(
         "",
         f"![error over time]({_relative(files['error_over_time'], out)})",
         "",
+        "## Where the sand stops",
+        "",
+        f"![fronts over time]({_relative(files['fronts'], out)})",
+        "",
     ]
+    if any(row.rest is not None for row in rows):
+        lines += ["## Rest test", "", _rest_table(rows)]
     if "gif" in files:
         lines += [
             "## Rollout",
@@ -1313,17 +1660,22 @@ def _html_report(
             "<ul>" + "".join(f"<li>{e(line.removeprefix('- '))}</li>" for line in lines) + "</ul>"
         )
 
-    table = _markdown_table(rows, columns).splitlines()
-    head = [c.strip() for c in table[0].strip("|").split("|")]
-    body = [[c.strip() for c in line.strip("|").split("|")] for line in table[2:]]
-    cells = "<tr>" + "".join(f"<th>{e(c)}</th>" for c in head) + "</tr>"
-    for line in body:
-        cells += "<tr>" + "".join(f"<td>{e(c)}</td>" for c in line) + "</tr>"
+    def table(markdown: str) -> str:
+        text = markdown.splitlines()
+        head = [c.strip() for c in text[0].strip("|").split("|")]
+        body = [[c.strip() for c in line.strip("|").split("|")] for line in text[2:]]
+        cells = "<tr>" + "".join(f"<th>{e(c)}</th>" for c in head) + "</tr>"
+        for line in body:
+            cells += "<tr>" + "".join(f"<td>{e(c)}</td>" for c in line) + "</tr>"
+        return f"<table>{cells}</table>"
+
     images = "".join(
         f'<p><img src="{e(_relative(files[key], out))}" alt="{key}" style="max-width:100%"></p>'
-        for key in ("error_over_time", "gif")
+        for key in ("error_over_time", "fronts", "gif")
         if key in files
     )
+    if any(row.rest is not None for row in rows):
+        images += "<h2>Rest test</h2>" + table(_rest_table(rows))
     return (
         "<!DOCTYPE html>\n<html><head><meta charset='utf-8'>"
         f"<title>gns report: {e(context['dataset'])}</title>"
@@ -1339,7 +1691,8 @@ def _html_report(
         + items(_context_lines(context))
         + f'<p><img src="{e(_relative(files["error_vs_time"], out))}" alt="error against run time" '
         'style="max-width:100%"></p>'
-        + f"<table>{cells}</table><h2>How to read it</h2>"
+        + table(_markdown_table(rows, columns))
+        + "<h2>How to read it</h2>"
         + items(_method_lines(context))
         + images
         + (("<h2>Notes</h2>" + items(context["notes"])) if context["notes"] else "")
