@@ -5,6 +5,7 @@ from any working directory."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -17,6 +18,7 @@ from gns.cli import main
 from gns.data import DatasetError
 from gns.rollout import load_rollout, save_rollout
 from gns.train import train
+from test_rollout import strided_run
 from test_train import config, make_dataset
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -424,4 +426,56 @@ def test_eval_finds_a_relative_recorded_checkpoint_from_here_or_the_run(
         "gns eval: error: the rollouts were made with checkpoint old/step_1.pt, which is not at "
         f"{run.parent / 'old/step_1.pt'} nor at {run / 'old/step_1.pt'}; pass --checkpoint",
     )
+    assert not (run / "eval_test.json").exists()
+
+
+# ------------------------------------------------------------------- frame spacings
+
+
+@pytest.fixture(scope="module")
+def strided(tmp_path_factory) -> tuple[Path, Path, Path]:
+    """(run, native data, converted data) of test_rollout.strided_run: a model of 7.5 ms steps
+    and data with 2.5 ms frames."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return strided_run(tmp_path_factory.mktemp("strided"))
+    finally:
+        torch.set_num_threads(threads)
+
+
+def with_dt(data: Path, folder: Path, dt: float) -> Path:
+    """A copy of the dataset `data` whose metadata says its frames are `dt` seconds apart."""
+    shutil.copytree(data, folder)
+    raw = json.loads((folder / "metadata.json").read_text())
+    raw["dt"] = dt
+    (folder / "metadata.json").write_text(json.dumps(raw))
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("dt", "problem"),
+    [
+        (0.002, "the data's frames are 2 ms apart: 7.5 ms is not a whole multiple of 2 ms; "),
+        (0.0225, "the data's frames are 22.5 ms apart: its frames are farther apart than the "),
+    ],
+)
+def test_data_whose_spacing_does_not_divide_the_models_step_is_refused_before_any_folder(
+    strided, tmp_path, capsys, dt, problem
+):
+    run, native, _ = strided
+    data = with_dt(native, tmp_path / "data", dt)
+    out = tmp_path / "out"
+    expected = ["the model steps 7.5 ms at a time, ", problem, "rolls out on frames 7.5 ms apart"]
+    common = ["--run", str(run), "--data", str(data), "--out", str(out)]
+    for command in ("rollout", "report"):
+        line = refused(capsys, [command, *common], *expected)
+        assert line.startswith(f"gns {command}: error: ")
+        assert not out.exists()
+    # eval, on rollouts made on the native data: its one-step errors on this data are refused.
+    rollouts = tmp_path / "rollouts"
+    argv = ["rollout", "--run", str(run), "--data", str(native), "--out", str(rollouts)]
+    assert main([*argv, "--trajectories", "0"]) == 0
+    argv = ["eval", "--run", str(run), "--data", str(data), "--rollouts", str(rollouts)]
+    assert refused(capsys, argv, *expected).startswith("gns eval: error: ")
     assert not (run / "eval_test.json").exists()

@@ -1,5 +1,6 @@
 """Evaluation of runs: one-step errors, rollout metrics next to the baselines, the deposit
-(runout, pile height, density, fronts) against the truth's, the rest test, and the CLI."""
+(runout, pile height, density, fronts) against the truth's, the rest test, and the CLI, on
+data whose frames are finer than the model's step too."""
 
 from __future__ import annotations
 
@@ -21,8 +22,9 @@ from gns.evaluate import (
     rest_test,
 )
 from gns.metrics import front_positions, runout_extent
-from gns.rollout import Rollout, load_rollout
+from gns.rollout import Rollout, load_rollout, save_rollout
 from gns.simulator import LearnedSimulator, Scene
+from test_rollout import strided_run
 from test_train import make_dataset
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -287,6 +289,53 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
     # Bad input is an error message and exit status 2, not a traceback.
     assert main(["eval", "--run", str(tmp_path / "nowhere"), "--data", str(data)]) == 2
     assert "argument --run: no such file or folder" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def strided(tmp_path_factory):
+    """test_rollout.strided_run: a model of 7.5 ms steps, data with 2.5 ms frames."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return strided_run(tmp_path_factory.mktemp("strided"))
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_eval_on_finer_data_scores_the_frames_the_model_steps_between(strided, tmp_path, capsys):
+    run, native, converted = strided
+    figures = {}
+    for name, data in (("native", native), ("converted", converted)):
+        rollouts = tmp_path / name
+        argv = ["--run", str(run), "--data", str(data)]
+        assert main(["rollout", *argv, "--out", str(rollouts)]) == 0
+        assert main(["eval", *argv, "--rollouts", str(rollouts), "--rest-steps", "2"]) == 0
+        figures[name] = json.loads((run / "eval_test.json").read_text())
+        printed = capsys.readouterr().out
+        note = "the data's frames are 2.5 ms apart, the model's steps 7.5 ms: every 3rd frame"
+        assert (f"one-step errors and rest test: {note}" in printed) == (name == "native")
+    ours, theirs = figures["native"], figures["converted"]
+    assert (ours["frame_stride"], theirs["frame_stride"]) == (3, 1)
+    # The same frames as on the data gns convert wrote (the oracle), so the same figures: the
+    # rollouts', the one-step errors (over the same 3 windows of each test trajectory) and the
+    # rest test (the last frame of those taken, frame 24).
+    assert ours["mean"] == theirs["mean"] and ours["rest"] == theirs["rest"]
+    assert ours["mean"]["model"]["one_step_mse"] > 0
+
+    # Rollouts that say they ran on other frames than the checkpoint reads are refused.
+    made = tmp_path / "native"
+    for path in made.glob("*.npz"):
+        r = load_rollout(path)
+        r.metadata["frame_stride"] = 1
+        save_rollout(path, r)
+    (run / "eval_test.json").unlink()
+    argv = ["eval", "--run", str(run), "--data", str(native), "--rollouts", str(made)]
+    assert main(argv) == 2
+    assert (
+        f"gns eval: error: the rollouts in {made} were made at frame stride 1, but "
+        in capsys.readouterr().err
+    )
+    assert not (run / "eval_test.json").exists()
 
 
 def held_pile(context: bool) -> Trajectory:

@@ -2,8 +2,9 @@
 rollouts (numpy, brute-force optimal transport), the MPM rows (native reproduces the data
 exactly, its deposit included; a failing cheaper setting is a row, not a crash), the static
 baseline and the deposit figures against the ground truth's, the rest test, datasets not made
-by `gns generate`, the tables parsing back, the VTK writer against a small XML reader, and bad
-arguments."""
+by `gns generate`, data whose frames are finer than the model's step (every row against the
+report on `gns convert --frame-stride`'s frames), the tables parsing back, the VTK writer against
+a small XML reader, and bad arguments."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import torch
 from data_helpers import metadata_dict, random_walk, write_metadata
 from gns import mpm
 from gns.config import Config, ModelConfig, TrainConfig
-from gns.data import open_dataset
+from gns.data import convert, open_dataset
 from gns.data.h5 import write_h5
 from gns.evaluate import rest_summary, rest_test
 from gns.generate import generate, preset_scene
@@ -395,6 +396,85 @@ def test_datasets_not_made_by_generate_get_no_mpm_rows_and_say_why(tmp_path, one
     (reason,) = [item for item in result.left_out if item.startswith("MPM rows")]
     assert "not written by `gns generate`" in reason
     assert reason in (result.out / "report.md").read_text()
+
+
+@pytest.fixture(scope="module")
+def strided_generated(tmp_path_factory, one_thread):
+    """A `gns generate` sand dataset at its 2.5 ms frames (1 test trajectory of 27 frames),
+    the same converted to every 3rd frame (9 frames, 7.5 ms apart), and a run trained 2 steps
+    on the converted one: a model that steps 7.5 ms."""
+    root = tmp_path_factory.mktemp("strided_generated")
+    generate("sand", root / "native", 1, 0, 1, seed=0, frames=27, progress=False)
+    convert(root / "native", root / "converted", "deepmind", frame_stride=3)
+    train(root / "converted", root / "run", TINY, device="cpu", progress=False)
+    return root
+
+
+def test_on_finer_data_every_row_is_scored_and_timed_at_the_models_frames(strided_generated):
+    root = strided_generated
+    assert open_dataset(root / "native", "test").metadata.dt == 0.0025
+    results = {
+        name: report(
+            root / "run",
+            root / name,
+            out=root / f"report_{name}",
+            horizons=(1, None),
+            every=2,
+            mpm=["native"],
+            animation_frames=0,
+            vtk_every=1 if name == "native" else 0,
+            progress=False,
+        )
+        for name in ("native", "converted")
+    }
+    ours, theirs = results["native"], results["converted"]
+    # The oracle: the same report on the frames gns convert wrote. The same rows (the GNS,
+    # the MPM re-run at its own 2.5 ms frames and taken at every 3rd, both baselines), scored
+    # the same, exactly.
+    assert [r.method for r in ours.rows] == ["GNS", "MPM", "constant velocity", "static"]
+    for a, b in zip(ours.rows, theirs.rows, strict=True):
+        assert (a.method, a.setting, a.values) == (b.method, b.setting, b.values)
+        np.testing.assert_array_equal(a.curve, b.curve)
+    native_mpm = ours.rows[1]
+    assert all(v == 0.0 for k, v in native_mpm.values.items() if "@" in k)
+    assert native_mpm.seconds_per_frame > 0
+    (saved,) = (ours.out / "rollouts").glob("*/rollout_test_0.npz")
+    rollout = load_rollout(saved)
+    assert rollout.num_steps == 9 - HISTORY and rollout.metadata["frame_stride"] == 3
+    # What the report says: the stride, and times per step of the model.
+    context = json.loads((ours.out / "table.json").read_text())["context"]
+    assert (context["frame_stride"], context["dataset_dt"], context["frames"]) == (3, 0.0025, 9)
+    assert context["dt"] == pytest.approx(0.0075, rel=1e-12) and context["mpm_frame_stride"] == 3
+    assert json.loads((theirs.out / "table.json").read_text())["context"]["frame_stride"] == 1
+    markdown = (ours.out / "report.md").read_text()
+    assert (
+        "- Frame stride 3: the data's frames are 2.5 ms apart, the model's steps 7.5 ms: every "
+        "3rd frame, from frame 0" in markdown
+    )
+    assert "| ms per 7.5 ms step |" in markdown and "per 7.5 ms step" in context["conclusion"][0]
+    assert "the 3 frames of its own it simulates per frame here, 2.5 ms apart" in markdown
+    assert "| ms per 7.5 ms step |" in (ours.out / "table.md").read_text()
+    # The ParaView files are 7.5 ms apart too.
+    pvd = ET.parse(ours.out / "vtk/ground_truth.pvd").getroot()
+    times = [float(e.get("timestep")) for e in pvd.findall("./Collection/DataSet")]
+    assert times == pytest.approx(0.0075 * np.arange(9))
+
+
+def test_checkpoints_at_different_frame_spacings_are_refused_before_any_work(
+    strided_generated, generated
+):
+    out = strided_generated / "mixed"
+    with pytest.raises(
+        ValueError, match="step over different frames of the data .*every 3.*every 1"
+    ):
+        report(
+            strided_generated / "run",
+            strided_generated / "native",
+            checkpoints=["latest", str(next((generated / "run/checkpoints").glob("step_*.pt")))],
+            out=out,
+            progress=False,
+        )
+    assert not out.exists()
 
 
 def test_a_coarser_grid_keeps_every_particle_where_it_was(generated):

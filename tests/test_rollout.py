@@ -1,6 +1,7 @@
 """Rollouts: constant-velocity extrapolation by hand, kinematic particles held to ground truth,
-a slow step-by-step oracle, step timings, divergence, files (ours and DeepMind's pickle), and a
-short rollout on the real sand data."""
+a slow step-by-step oracle, step timings, divergence, files (ours and DeepMind's pickle), a short
+rollout on the real sand data, and a model of one frame spacing on data with finer frames
+(`gns rollout` against the same checkpoint on `gns convert --frame-stride`'s frames)."""
 
 from __future__ import annotations
 
@@ -492,3 +493,75 @@ def test_a_small_excursion_is_not_divergence_and_float64_rollouts_agree():
     assert double.predicted_rollout.dtype == np.float64
     assert single.predicted_rollout.dtype == np.float32
     np.testing.assert_allclose(double.predicted_rollout, single.predicted_rollout, atol=1e-5)
+
+
+# ---------------------------------------------------------------------- frame stride
+
+STRIDE = 3
+NATIVE_FRAMES = 27  # a multiple of the stride: frames 0, 3, ..., 24 at stride 3, 9 of them
+
+
+def strided_run(root: Path) -> tuple[Path, Path, Path]:
+    """(run folder, native data, converted data): a GNS trained for 2 steps on `gns convert
+    --frame-stride 3` of a dataset with 2.5 ms frames (so it steps 7.5 ms), its test split 2
+    trajectories of 27 frames (9 converted)."""
+    from gns.data import convert
+    from gns.train import train
+    from test_train import config, make_dataset
+
+    native = make_dataset(root / "native", frames=NATIVE_FRAMES)
+    (native / "valid.h5").rename(native / "test.h5")
+    convert(native, root / "converted", "h5", frame_stride=STRIDE)
+    train(root / "converted", root / "run", config(2), progress=False)
+    return root / "run", native, root / "converted"
+
+
+@pytest.fixture(scope="module")
+def strided(tmp_path_factory) -> tuple[Path, Path, Path]:
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return strided_run(tmp_path_factory.mktemp("strided"))
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_a_model_rolls_out_on_finer_data_at_its_own_frame_spacing(strided, tmp_path, capsys):
+    from gns.cli import main
+
+    run, native, converted = strided
+    common = ["rollout", "--run", str(run)]
+    assert main([*common, "--data", str(native), "--out", str(tmp_path / "a")]) == 0
+    note = "the data's frames are 2.5 ms apart, the model's steps 7.5 ms: every 3rd frame"
+    assert note in capsys.readouterr().out.splitlines()
+    # The oracle: the same checkpoint on the frames gns convert wrote.
+    assert main([*common, "--data", str(converted), "--out", str(tmp_path / "b")]) == 0
+    assert "every 3rd frame" not in capsys.readouterr().out
+    for i in (0, 1):
+        ours = load_rollout(tmp_path / "a" / f"rollout_test_{i}.npz")
+        theirs = load_rollout(tmp_path / "b" / f"rollout_test_{i}.npz")
+        assert ours.num_steps == theirs.num_steps == NATIVE_FRAMES // STRIDE - (C + 1)
+        for name in ("initial_positions", "predicted_rollout", "ground_truth_rollout"):
+            np.testing.assert_array_equal(getattr(ours, name), getattr(theirs, name), name)
+        np.testing.assert_array_equal(ours.step_context, theirs.step_context)
+        assert (ours.metadata["frame_stride"], ours.metadata["dataset_dt"]) == (3, 0.0025)
+        assert theirs.metadata["frame_stride"] == 1
+        assert theirs.metadata["dataset_dt"] == pytest.approx(0.0075, rel=1e-12)
+
+
+def test_a_checkpoint_from_before_frame_spacings_rolls_out_on_every_frame(strided, tmp_path):
+    from gns.checkpoints import choose_checkpoint, load_simulator
+    from gns.cli import main
+    from test_train import as_written_before_frame_spacing
+
+    run, native, _ = strided
+    old = tmp_path / "old.pt"
+    old.write_bytes(choose_checkpoint(run).read_bytes())
+    as_written_before_frame_spacing(old)
+    assert main(["rollout", "--run", str(old), "--data", str(native), "--trajectories", "1"]) == 0
+    saved = load_rollout(tmp_path / "rollouts/test/rollout_test_1.npz")
+    # As before: every frame of the data, the rollout of the library on the trajectory as it is.
+    expected = rollout(load_simulator(old), open_dataset(native, "test")[1])
+    assert saved.num_steps == NATIVE_FRAMES - (C + 1)
+    np.testing.assert_array_equal(saved.predicted_rollout, expected.predicted_rollout)
+    assert saved.metadata["frame_stride"] == 1

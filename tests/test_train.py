@@ -14,7 +14,14 @@ import numpy as np
 import pytest
 import torch
 from data_helpers import metadata_dict, write_metadata
-from gns.checkpoints import choose_checkpoint, latest_checkpoint, load_checkpoint, load_simulator
+from gns.checkpoints import (
+    CHECKPOINT_FORMAT,
+    choose_checkpoint,
+    latest_checkpoint,
+    load_checkpoint,
+    load_simulator,
+    save_checkpoint,
+)
 from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
 from gns.data import Trajectory, open_dataset
 from gns.data.h5 import write_h5
@@ -126,6 +133,45 @@ def test_checkpoints_are_kept_pruned_and_self_contained(tmp_path):
     state = load_checkpoint(latest_checkpoint(tmp_path / "run"))
     assert state["step"] == 10 and state["config"]["model"]["latent_size"] == 8
     assert state["scene"]["context_size"] == 1
+
+
+def as_written_before_frame_spacing(path: Path) -> None:
+    """Rewrite the checkpoint at `path` as gns wrote it before checkpoints recorded the
+    training data's frame spacing: format 1, no dt in the scene."""
+    state = load_checkpoint(path, resume=True)
+    del state["scene"]["dt"]
+    state["format"] = "gns-checkpoint-1"
+    save_checkpoint(path, state)
+
+
+def test_the_model_knows_its_frame_spacing_and_old_checkpoints_still_load(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    train(data, tmp_path / "run", config(3), progress=False)
+    path = latest_checkpoint(tmp_path / "run")
+    state = load_checkpoint(path)
+    assert state["format"] == CHECKPOINT_FORMAT and state["scene"]["dt"] == 0.0025
+    simulator = load_simulator(path)
+    assert simulator.frame_dt == 0.0025
+    finer = open_dataset(data).metadata.replace(dt=0.00125)
+    assert simulator.frame_stride_for(finer) == 2
+    with pytest.raises(ValueError, match="2.5 ms is not a whole multiple of 1 ms"):
+        simulator.frame_stride_for(finer.replace(dt=0.001))
+
+    # Written before: the same model, which does not know its spacing and reads every frame.
+    as_written_before_frame_spacing(path)
+    old = load_simulator(path)
+    assert old.frame_dt is None and old.frame_stride_for(finer.replace(dt=0.001)) == 1
+    for key, value in parameters(old).items():
+        assert torch.equal(value, parameters(simulator)[key]), key
+    # Resumed on its data, such a run records the spacing from then on.
+    train(data, tmp_path / "run", config(6), resume=True, progress=False)
+    resumed = load_checkpoint(latest_checkpoint(tmp_path / "run"))
+    assert resumed["format"] == CHECKPOINT_FORMAT and resumed["scene"]["dt"] == 0.0025
+    # A format this version does not know is refused by name.
+    state["format"] = "gns-checkpoint-9"
+    save_checkpoint(tmp_path / "future.pt", state)
+    with pytest.raises(ValueError, match="'gns-checkpoint-9'; expected gns-checkpoint-1 or "):
+        load_checkpoint(tmp_path / "future.pt")
 
 
 def test_existing_run_is_not_overwritten_and_resume_needs_a_checkpoint(tmp_path):

@@ -25,6 +25,7 @@ from gns.simulator import LearnedSimulator, Scene
 
 __all__ = [
     "CHECKPOINT_FORMAT",
+    "READABLE_FORMATS",
     "RESUME_KEYS",
     "WEIGHTS_KEYS",
     "choose_checkpoint",
@@ -38,7 +39,12 @@ __all__ = [
     "statistics_dict",
 ]
 
-CHECKPOINT_FORMAT = "gns-checkpoint-1"
+CHECKPOINT_FORMAT = "gns-checkpoint-2"
+# Formats load_checkpoint reads. 1: before the scene recorded the training data's frame spacing
+# (Scene.dt); such a model loads with frame_dt None and reads every frame, as it did. New
+# checkpoints say 2, so that a gns which predates Scene.dt refuses them with a message rather
+# than failing on the scene's unknown entry.
+READABLE_FORMATS = ("gns-checkpoint-1", CHECKPOINT_FORMAT)
 # What load_simulator needs (best.pt holds only these), and what an exact resume needs too.
 WEIGHTS_KEYS = ("format", "step", "config", "scene", "statistics", "model")
 RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "sampler", "noise_generator")
@@ -109,8 +115,12 @@ def load_checkpoint(path: str | os.PathLike[str], resume: bool = False) -> dict[
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:
         raise ValueError(f"{name}: not a readable gns checkpoint ({err})") from err
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{name}: not a gns checkpoint (format {CHECKPOINT_FORMAT})")
+    if not isinstance(state, dict) or state.get("format") not in READABLE_FORMATS:
+        found = state.get("format") if isinstance(state, dict) else None
+        raise ValueError(
+            f"{name}: not a gns checkpoint this version reads (format {found!r}; expected "
+            f"{' or '.join(READABLE_FORMATS)})"
+        )
     missing = [key for key in (RESUME_KEYS if resume else WEIGHTS_KEYS) if key not in state]
     if missing:
         hint = " (weights only: resume from a step_*.pt)" if resume else ""

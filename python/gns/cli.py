@@ -168,7 +168,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="autoregressive rollouts of a trained run on a split",
         description="One file per trajectory: rollout_{split}_{i}.npz (our schema) and, with "
         "--deepmind, rollout_{split}_{i}.pkl (DeepMind's layout). Prints the time per step "
-        "split into graph building, features, model and integration.",
+        "split into graph building, features, model and integration. A model steps as far as "
+        "its training data's frames were apart: on data whose frames are a whole factor k "
+        "finer it rolls out on every k-th frame from frame 0 (the frames `gns convert "
+        "--frame-stride k` keeps; the files record frame_stride and dataset_dt), and data "
+        "whose frame spacing does not divide its step is refused.",
     )
     roll.add_argument(
         "--run", type=existing_path, required=True, help="run folder or checkpoint file"
@@ -215,7 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
         "runout_ratio, height_ratio, density_ratio, each over the ground truth's (1 is right). "
         "Percentiles interpolate linearly between sorted values. The fronts (1st and 99th "
         "percentile of x in every frame) go to the JSON as front_x_p1 and front_x_p99. Means "
-        "are over trajectories (outside_box: the worst). Writes RUN/eval_SPLIT.json.",
+        "are over trajectories (outside_box: the worst). The one-step errors and the rest test "
+        "take every k-th frame of data whose frames are k times finer than the model's step, "
+        "as `gns rollout` does. Writes RUN/eval_SPLIT.json.",
     )
     ev.add_argument("--run", type=existing_path, required=True, help="run folder")
     ev.add_argument("--data", type=existing_path, required=True, help="dataset folder")
@@ -280,7 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
         "height ratio, the 99th percentile of y above the box's floor; density ratio, "
         "neighbours within the connectivity radius), and writes report.md / report.html, "
         "table.{md,csv,json}, error_vs_time.png, error_over_time.png, fronts.png, a GIF of one "
-        "rollout and VTK files to --out.",
+        "rollout and VTK files to --out. Every row is scored on the frames the models step "
+        "between: every k-th frame of data whose frames are k times finer (as `gns rollout` "
+        "takes them), and its time is per such frame.",
     )
     rep.add_argument(
         "--run", type=existing_path, required=True, help="run folder or checkpoint file"
@@ -446,9 +454,15 @@ def run_folder(run: Path) -> Path:
 
 def run_rollout(args: argparse.Namespace) -> int:
     from gns.checkpoints import choose_checkpoint, load_simulator
-    from gns.data import open_dataset
+    from gns.data import at_frame_stride, describe_frame_stride, open_dataset
     from gns.device import resolve_device
-    from gns.rollout import RolloutDiverged, rollout, save_deepmind_pickle, save_rollout
+    from gns.rollout import (
+        RolloutDiverged,
+        frame_stride_metadata,
+        rollout,
+        save_deepmind_pickle,
+        save_rollout,
+    )
 
     dataset = open_dataset(args.data, args.split)
     indices = args.trajectories if args.trajectories else range(len(dataset))
@@ -467,6 +481,11 @@ def run_rollout(args: argparse.Namespace) -> int:
     checkpoint = choose_checkpoint(args.run, args.checkpoint)
     print(f"checkpoint {checkpoint}")
     simulator = load_simulator(checkpoint, device)
+    # Refused here, before the first rollout and its folder, if the data's spacing does not
+    # divide the model's step.
+    stride = simulator.frame_stride_for(dataset.metadata)
+    if stride > 1:
+        print(describe_frame_stride(dataset.metadata.dt, stride))
     if args.float64:
         simulator.double()
     # Absolute, so that `gns eval` finds them from any working directory.
@@ -474,6 +493,7 @@ def run_rollout(args: argparse.Namespace) -> int:
         "dataset": str(args.data.resolve()),
         "split": args.split,
         "checkpoint": str(checkpoint.resolve()),
+        **frame_stride_metadata(dataset.metadata.dt, stride),
     }
     diverged = 0
     for i in indices:
@@ -482,7 +502,7 @@ def run_rollout(args: argparse.Namespace) -> int:
         try:
             result = rollout(
                 simulator,
-                dataset[i],
+                at_frame_stride(dataset[i], stride),
                 num_steps=args.steps,
                 metadata=info,
                 escape_distance=args.escape_distance,
@@ -529,7 +549,7 @@ def recorded_checkpoint(recorded: str, run: Path) -> Path:
 
 def run_eval(args: argparse.Namespace) -> int:
     from gns.checkpoints import choose_checkpoint, load_simulator
-    from gns.data import open_dataset
+    from gns.data import at_frame_stride, describe_frame_stride, open_dataset
     from gns.data.atomic import write_json_atomic
     from gns.device import resolve_device
     from gns.evaluate import evaluate_rollouts, one_step_errors, rest_summary, rest_test
@@ -555,22 +575,40 @@ def run_eval(args: argparse.Namespace) -> int:
             checkpoint = choose_checkpoint(args.run, args.checkpoint)
         simulator = load_simulator(checkpoint, device)
         dataset = open_dataset(args.data, args.split)
+        # One-step errors and the rest test on the frames the model steps between, as its
+        # rollouts were made (gns rollout): every stride-th frame of the data.
+        stride = simulator.frame_stride_for(dataset.metadata)
+        made_at = {r.metadata.get("frame_stride") for r in rollouts} - {None}
+        if made_at and made_at != {stride}:
+            raise ValueError(
+                f"the rollouts in {folder} were made at frame stride "
+                f"{' and '.join(map(str, sorted(made_at)))}, but {checkpoint} takes frame stride "
+                f"{stride} on {args.data} ({describe_frame_stride(dataset.metadata.dt, stride)}): "
+                "its one-step errors and rest test would be of other frames than the rollouts'; "
+                "use --checkpoint auto (the rollouts' own) or roll this one out again"
+            )
+        trajectories = [at_frame_stride(t, stride) for t in dataset]
     report = evaluate_rollouts(rollouts, distribution_every=args.every)
     if args.one_step_windows or args.rest_steps:
         report["one_step_checkpoint"] = str(checkpoint.resolve())
+        report["frame_stride"] = stride
     if args.one_step_windows:
         one_step = one_step_errors(
-            simulator, list(dataset), max_windows=args.one_step_windows, device=device
+            simulator, trajectories, max_windows=args.one_step_windows, device=device
         )
         for name, value in one_step.items():
             report["mean"][name]["one_step_mse"] = value
     if args.rest_steps:
-        rest = [rest_test(simulator, t, args.rest_steps, device=device) for t in dataset]
+        rest = [rest_test(simulator, t, args.rest_steps, device=device) for t in trajectories]
         report["rest"] = rest_summary(rest, args.rest_steps)
     report["split"], report["rollouts"] = args.split, [str(f.absolute()) for f in files]
     written = run_folder(args.run) / f"eval_{args.split}.json"
     write_json_atomic(written, report)
     print(f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box: worst)")
+    if report.get("frame_stride", 1) > 1:
+        print(
+            f"one-step errors and rest test: {describe_frame_stride(dataset.metadata.dt, stride)}"
+        )
     print_summary(report["mean"])
     if "rest" in report:
         figures = ", ".join(f"{k} {v:.4g}" for k, v in report["rest"]["mean"].items())

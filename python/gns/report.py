@@ -20,8 +20,16 @@ Errors are gns.metrics' (MSE per frame, optimal transport W2^2, MMD^2 with bandw
 the non-kinematic particles, at the horizons asked for: the mean over the first h predicted
 frames, then over trajectories. OT and MMD cost O(N^2) or more per frame, so they are evaluated
 on every k-th predicted frame only (k = `every`), and "@h" for them is the mean over those
-evaluated frames among the first h. Time is wall-clock seconds per simulated frame (one frame
-= the dataset's dt), the mean over every frame of every trajectory.
+evaluated frames among the first h. Time is wall-clock seconds per simulated frame, the mean
+over every frame of every trajectory.
+
+Frames are those the models step between: a model trained on frames k times farther apart than
+the dataset's (its checkpoint records its spacing; gns.data.frame_stride) is rolled out on every
+k-th frame of each trajectory from frame 0 (gns.data.at_frame_stride), and so is every other row
+scored: the baselines extrapolate those frames, the MPM re-runs simulate the frames between and
+are scored on the same ones, and every time per frame is per such frame (one step of the model,
+k dt; the report's context states the stride). Data whose spacing does not divide the models'
+step is refused before any work.
 
 Where the sand stops (gns.metrics.deposit), from the last frame's non-kinematic particles:
 runout (the 99th minus the 1st percentile of x), pile height (the 99th percentile of y above the
@@ -74,6 +82,7 @@ import numpy as np
 
 from gns.config import MODEL_NAMES
 from gns.data.atomic import write_bytes_atomic
+from gns.data.stride import describe_frame_stride, frame_stride, spacing_text
 from gns.machine import cpu_name
 from gns.metrics import (
     DEPOSIT_CURVES,
@@ -488,27 +497,26 @@ def _device_label(device: Any, ran: Sequence[dict[str, Any]]) -> str:
 
 def _learned_row(
     checkpoint: Path,
-    state: dict[str, Any],
+    simulator: Any,
+    step: int | None,
     trajectories: list[Any],
     indices: list[int],
     scoring: _Scoring,
     device: Any,
     rollouts_dir: Path,
     split: str,
-    dataset_name: str,
+    recorded: Mapping[str, Any],
     rest_steps: int,
     say: Callable[[str], None],
 ) -> tuple[Row, list[np.ndarray]]:
-    """Roll the checkpoint (`state`, as read from the file `checkpoint`) out on every trajectory
-    (timed), score the rollouts, save them with their deposit (Rollout.metrics), and with
+    """Roll the simulator of the file `checkpoint` (trained for `step` steps) out on every
+    trajectory (timed), score the rollouts, save them with their deposit (Rollout.metrics) and
+    `recorded` (what they ran on: dataset, split, frame stride) in their metadata, and with
     rest_steps > 0 run the rest test on every trajectory. Returns the row and the predictions
     (S, N, D) per trajectory, NaN after a divergence."""
-    from gns.checkpoints import simulator_from_checkpoint
     from gns.evaluate import rest_summary, rest_test
     from gns.rollout import RolloutDiverged, rollout, save_rollout
 
-    step = state.get("step")
-    simulator = simulator_from_checkpoint(state, device)
     setting = f"{checkpoint.name} (step {step})" if step is not None else checkpoint.name
     say(f"rolling out {setting} on {len(trajectories)} trajectories")
     # One short untimed rollout first: the first call pays for lazy initialisation (allocator,
@@ -518,7 +526,7 @@ def _learned_row(
     scores, predictions, seconds, ran = [], [], [], []
     rollouts_dir.mkdir(parents=True, exist_ok=True)
     for index, trajectory in zip(indices, trajectories, strict=True):
-        info = {"dataset": dataset_name, "split": split, "checkpoint": str(checkpoint)}
+        info = {**recorded, "checkpoint": str(checkpoint)}
         try:
             result = rollout(simulator, trajectory, metadata=info)
         except RolloutDiverged as err:
@@ -625,13 +633,22 @@ class _MpmPlan:
     scenes: list[tuple[Any, int]]
     variants: list[MpmVariant]
     reason: str | None = None
+    # Frames the simulator makes per frame of the table: their spacings' ratio (at a frame
+    # stride, or on data converted to one, the table's frames are farther apart than its own).
+    stride: int = 1
 
 
 def _mpm_plan(
-    metadata: Any, split: str, trajectories: list[Any], indices: list[int], specs: Sequence[str]
+    metadata: Any,
+    split: str,
+    trajectories: list[Any],
+    indices: list[int],
+    specs: Sequence[str],
+    frame_dt: float,
 ) -> _MpmPlan:
     """Check the MPM settings and find the scenes that made the data, before any rollout: a
-    bad --mpm must be refused at once, not after minutes of learned rollouts."""
+    bad --mpm must be refused at once, not after minutes of learned rollouts. frame_dt: the
+    seconds between the frames every row predicts."""
     from gns import mpm
     from gns.generate import preset_scene
 
@@ -657,6 +674,17 @@ def _mpm_plan(
     variants = parse_mpm_variants(specs, scenes[0][0].grid, scenes[0][0].cfl)
     if not variants:
         return _MpmPlan([], [])
+    own_dt = scenes[0][0].frame_dt
+    try:
+        stride = frame_stride(frame_dt, own_dt)
+    except ValueError:
+        return _MpmPlan(
+            [],
+            [],
+            f"MPM rows: the reference simulator's frames are {spacing_text(own_dt)} apart, "
+            f"which does not divide the {spacing_text(frame_dt)} between the frames every row "
+            "predicts",
+        )
     for (scene, lattice_seed), index, trajectory in zip(scenes, indices, trajectories, strict=True):
         start = mpm.particles(scene, lattice_seed)["positions"].astype(np.float32)
         if start.shape != trajectory.positions[0].shape or not np.allclose(
@@ -670,7 +698,7 @@ def _mpm_plan(
                 f"({start.shape[0]} particles vs {trajectory.n_particles}); this dataset was "
                 "made by another version of the presets and cannot be re-run",
             )
-    return _MpmPlan(scenes, variants)
+    return _MpmPlan(scenes, variants, stride=stride)
 
 
 def _mpm_rows(
@@ -706,15 +734,17 @@ def _mpm_rows(
                     f"({len(moved)} vs {len(start)}), so MSE would compare different particles"
                 )
                 continue
+            k = plan.stride
             try:
-                result = mpm.simulate(new, trajectory.num_frames, seed=lattice_seed)
+                result = mpm.simulate(new, (trajectory.num_frames - 1) * k + 1, seed=lattice_seed)
             except ValueError as err:
                 failures.append(f"trajectory {index}: {err}")
                 continue
             say(f"  trajectory {index}: simulated; scoring")
-            scores.append(scoring(result.positions[scoring.history :], trajectory))
-            seconds.append(result.seconds)
-            substeps.append(result.substeps)
+            # Its every k-th frame is a frame of the table, and costs the k frames up to it.
+            scores.append(scoring(result.positions[::k][scoring.history :], trajectory))
+            seconds.append(result.seconds.reshape(-1, k).sum(axis=1))
+            substeps.append(result.substeps.reshape(-1, k).sum(axis=1))
         if failures:
             row.status = "failed: " + "; ".join(failures)
         else:
@@ -752,12 +782,14 @@ def _cell(value: float | None) -> str:
     return _format(value if value is None or math.isfinite(value) else None)
 
 
-def _markdown_table(rows: Sequence[Row], columns: Sequence[str]) -> str:
-    """The table for humans: the time split in one column, numbers to 3 figures."""
+def _markdown_table(rows: Sequence[Row], columns: Sequence[str], frame: str = "frame") -> str:
+    """The table for humans: the time split in one column, numbers to 3 figures; the times
+    are per `frame` (_frame_name)."""
     fixed = {"method", "setting", "device", "ms_per_frame", "trajectories", "diverged_at_step"}
     fixed |= {"status", *(f"{p}_ms" for p in TIMING_PARTS)}
     figures = [c for c in columns if c not in fixed]
-    header = ["method", "setting", "device", "ms/frame", "graph / features / model / integr. ms"]
+    per = "ms/frame" if frame == "frame" else f"ms per {frame}"
+    header = ["method", "setting", "device", per, "graph / features / model / integr. ms"]
     header += [c.replace("@", " @").replace("_", " ") for c in figures] + ["status"]
     lines = []
     for row in rows:
@@ -840,9 +872,10 @@ def report(
     when it is complete (a failed report leaves `out` as it was).
     """
 
-    from gns.checkpoints import load_checkpoint
-    from gns.data import open_dataset
+    from gns.checkpoints import load_checkpoint, simulator_from_checkpoint
+    from gns.data import at_frame_stride, open_dataset
     from gns.device import resolve_device
+    from gns.rollout import frame_stride_metadata
 
     # Every argument is checked before the first rollout (they take minutes), and nothing is
     # written until then either.
@@ -879,8 +912,6 @@ def report(
     indices = list(range(trajectories or len(dataset)))
     chosen = list(dict.fromkeys(_checkpoint(run, which) for which in checkpoints))
     metadata = dataset.metadata
-    items = [dataset[i] for i in indices]
-    plan = _mpm_plan(metadata, split, items, indices, mpm)
     # Each file read and CRC-checked once, here.
     states = [load_checkpoint(path) for path in chosen]
     history = states[0]["config"]["model"]["velocity_history"] + 1
@@ -890,11 +921,18 @@ def report(
                 f"{path} reads C + 1 = {reads} input frames but the first checkpoint reads "
                 f"{history}; every row must predict the same frames, so report them separately"
             )
+    simulators = [simulator_from_checkpoint(state, torch_device) for state in states]
+    stride = _frame_stride(chosen, simulators, metadata)
+    # Every row predicts the frames the models step between: every stride-th of the data's.
+    items = [at_frame_stride(dataset[i], stride) for i in indices]
+    frame_dt = metadata.dt * stride
+    plan = _mpm_plan(metadata, split, items, indices, mpm, frame_dt)
     steps = min(t.num_frames for t in items) - history
     if steps < 1:
+        at = f" at frame stride {stride}" if stride > 1 else ""
         raise ValueError(
-            f"the {split} trajectories have {steps + history} frames; a rollout needs more than "
-            f"the model's {history} input frames"
+            f"the {split} trajectories have {steps + history} frames{at}; a rollout needs more "
+            f"than the model's {history} input frames"
         )
     if len({t.num_frames for t in items}) > 1:
         raise ValueError(
@@ -918,17 +956,20 @@ def report(
             p.stem if [q.stem for q in chosen].count(p.stem) == 1 else f"{k}_{p.stem}"
             for k, p in enumerate(chosen)
         ]
-        for path, state, stem in zip(chosen, states, stems, strict=True):
+        recorded = {"dataset": str(data), "split": split}
+        recorded.update(frame_stride_metadata(metadata.dt, stride))
+        for path, state, simulator, stem in zip(chosen, states, simulators, stems, strict=True):
             row, predicted = _learned_row(
                 path,
-                state,
+                simulator,
+                state.get("step"),
                 items,
                 indices,
                 scoring,
                 torch_device,
                 folder / "rollouts" / stem,
                 split,
-                str(data),
+                recorded,
                 rest_steps,
                 say,
             )
@@ -960,7 +1001,8 @@ def report(
                 "trajectories"
             )
 
-        files = _write_tables(folder, rows, columns)
+        frame = _frame_name(frame_dt, stride)
+        files = _write_tables(folder, rows, columns, frame)
         say("figures")
         files.update(_write_figures(folder, rows, horizons, steps, history, truth))
         first = items[0]
@@ -972,7 +1014,8 @@ def report(
                 predictions[0],
                 history,
                 split,
-                metadata,
+                metadata.bounds,
+                frame_dt,
                 rows[0].short,
                 animation_frames,
                 vtk_every,
@@ -994,7 +1037,11 @@ def report(
             "horizons": list(horizons),
             "steps": steps,
             "every": every,
-            "dt": metadata.dt,
+            # The seconds between the frames of the table, every frame_stride-th of the data's.
+            "dt": frame_dt,
+            "dataset_dt": metadata.dt,
+            "frame_stride": stride,
+            "mpm_frame_stride": plan.stride,
             "floor": pile_floor(metadata.bounds, first.positions[0]),
             "radius": metadata.default_connectivity_radius,
             "rest_steps": rest_steps,
@@ -1004,7 +1051,7 @@ def report(
             "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
             "notes": list(notes),
             "left_out": left_out,
-            "conclusion": conclusion(rows, columns, steps, truth["mean"]),
+            "conclusion": conclusion(rows, columns, steps, truth["mean"], frame=frame),
         }
         payload = {
             "columns": columns,
@@ -1041,6 +1088,31 @@ def report(
     say(f"wrote {out / 'report.md'} in {context['seconds']:.0f} s")
     files = {role: out / path.relative_to(folder) for role, path in files.items()}
     return ReportResult(out, rows, files, left_out)
+
+
+def _frame_stride(checkpoints: Sequence[Path], simulators: Sequence[Any], metadata: Any) -> int:
+    """The frame stride every checkpoint takes on the data (LearnedSimulator.frame_stride_for):
+    one for all, as every row must predict the same frames. ValueError naming the checkpoint
+    when the data's frame spacing does not divide a model's step, or when they differ."""
+    strides = []
+    for path, simulator in zip(checkpoints, simulators, strict=True):
+        try:
+            strides.append(simulator.frame_stride_for(metadata))
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from None
+    if len(set(strides)) > 1:
+        each = ", ".join(f"{p} every {k}" for p, k in zip(checkpoints, strides, strict=True))
+        raise ValueError(
+            f"the checkpoints step over different frames of the data ({each}); every row must "
+            "predict the same frames, so report them separately"
+        )
+    return strides[0]
+
+
+def _frame_name(frame_dt: float, stride: int) -> str:
+    """What the table's times are per: "frame" (of the data), or at a frame stride one step of
+    the model, e.g. "7.5 ms step"."""
+    return "frame" if stride == 1 else f"{spacing_text(frame_dt)} step"
 
 
 def _truth_deposits(
@@ -1144,10 +1216,12 @@ def _write_json(path: Path, payload: Any) -> None:
     )
 
 
-def _write_tables(out: Path, rows: Sequence[Row], columns: Sequence[str]) -> dict[str, Path]:
+def _write_tables(
+    out: Path, rows: Sequence[Row], columns: Sequence[str], frame: str
+) -> dict[str, Path]:
     records = [_record(row, columns) for row in rows]
     write_bytes_atomic(out / "table.csv", _csv_text(records, columns).encode("utf-8"))
-    write_bytes_atomic(out / "table.md", _markdown_table(rows, columns).encode("utf-8"))
+    write_bytes_atomic(out / "table.md", _markdown_table(rows, columns, frame).encode("utf-8"))
     return {"csv": out / "table.csv", "table": out / "table.md"}
 
 
@@ -1197,7 +1271,8 @@ def _write_media(
     predicted: np.ndarray,
     history: int,
     split: str,
-    metadata: Any,
+    bounds: Any,
+    dt: float,
     label: str,
     animation_frames: int,
     vtk_every: int | None,
@@ -1206,7 +1281,7 @@ def _write_media(
 ) -> dict[str, Path]:
     """The animation and VTK files of one trajectory and the first checkpoint's prediction
     (`label`: the row's, e.g. "GNS best.pt (step 2000)"), both up to the frame where the
-    prediction diverged, if it did."""
+    prediction diverged, if it did; in the box `bounds`, with frames `dt` seconds apart."""
     from gns.plots import animation, diverged_frame
     from gns.vtk import write_series
 
@@ -1227,10 +1302,10 @@ def _write_media(
             whole,
             trajectory.particle_type,
             gif,
-            bounds=metadata.bounds,
+            bounds=bounds,
             titles=(f"ground truth{projection}", f"{label}{projection}"),
             first_predicted=history,
-            dt=metadata.dt,
+            dt=dt,
             max_frames=animation_frames,
             mp4_path=mp4,
         )
@@ -1249,14 +1324,14 @@ def _write_media(
         finite = len(whole) if stop is None else stop
         types = {"particle_type": trajectory.particle_type.astype(np.int32)}
         files["vtk_truth"] = write_series(
-            folder, "ground_truth", truth, dt=metadata.dt, every=vtk_every, point_data=types
+            folder, "ground_truth", truth, dt=dt, every=vtk_every, point_data=types
         )
         error = np.linalg.norm(whole[:finite] - truth[:finite], axis=-1).astype(np.float32)
         files["vtk_prediction"] = write_series(
             folder,
             "prediction",
             whole[:finite],
-            dt=metadata.dt,
+            dt=dt,
             every=vtk_every,
             point_data=types,
             frame_data={"error": error},
@@ -1387,6 +1462,8 @@ def conclusion(
     columns: Sequence[str],
     steps: int,
     truth: Mapping[str, float] | None = None,
+    *,
+    frame: str = "frame",
 ) -> list[str]:
     """The table in plain words, computed from it: how the best learned row compares with
     constant velocity (and the static baseline, when there is its row) over the longest horizon
@@ -1396,7 +1473,8 @@ def conclusion(
     test ran), which method has the lowest MSE at each horizon, how the learned model compares
     with the cheaper MPM settings, and which learned rows diverged. One sentence a list entry;
     true for any outcome (a learned model worse than the baseline, every learned row diverged,
-    no MPM rows)."""
+    no MPM rows). Times are quoted per `frame`, what the rows' seconds_per_frame are per
+    (at a frame stride, one step of the model: "7.5 ms step")."""
     keys = [c for c in columns if c.startswith("mse@")]
     learned = [r for r in rows if r.role == "learned"]
     baseline = next((r for r in rows if r.method == CONSTANT_VELOCITY), None)
@@ -1424,7 +1502,7 @@ def conclusion(
             versus = _mse_against(best.values[key], held, "the static baseline")
             sentence += f" and {versus} ({_format(held)})"
         if best.seconds_per_frame is not None:
-            sentence += f" at {_ms(best.seconds_per_frame)} per frame"
+            sentence += f" at {_ms(best.seconds_per_frame)} per {frame}"
             if reference is not None and reference.seconds_per_frame is not None:
                 sentence += ", " + _speed_against(
                     best.seconds_per_frame,
@@ -1469,7 +1547,7 @@ def conclusion(
                 against.append(f"{row.short} did not finish (see its status)")
                 continue
             text = f"{_mse_against(best.values[key], value, row.short)} ({_format(value)}"
-            text += f" at {_ms(row.seconds_per_frame)} per frame"
+            text += f" at {_ms(row.seconds_per_frame)} per {frame}"
             if best.seconds_per_frame is not None:
                 text += ", " + _speed_against(best.seconds_per_frame, row.seconds_per_frame, "it")
             against.append(text + ")")
@@ -1517,11 +1595,25 @@ def _context_lines(context: dict[str, Any]) -> list[str]:
         f"- Data: `{context['data']}`, split {context['split']}, trajectories "
         f"{context['trajectories']}, {', '.join(map(str, context['particles']))} particles, "
         f"{context['frames']} frames each (dt {context['dt']:g} s)",
+        *_stride_lines(context),
+    ]
+
+
+def _stride_lines(context: dict[str, Any]) -> list[str]:
+    """The frame stride, when the models step over more than one frame of the data."""
+    stride = context["frame_stride"]
+    if stride == 1:
+        return []
+    return [
+        f"- Frame stride {stride}: {describe_frame_stride(context['dataset_dt'], stride)}, from "
+        "frame 0 (as `gns convert --frame-stride` writes them). Every row predicts these "
+        "frames; every figure, frame number and time per frame here is of them."
     ]
 
 
 def _method_lines(context: dict[str, Any]) -> list[str]:
     h, s, k = context["history"], context["steps"], context["every"]
+    stride, mpm_stride = context["frame_stride"], context["mpm_frame_stride"]
     return [
         f"- Every row predicts frames {h} to {h + s - 1} ({s} frames) of each trajectory; the "
         f"learned model and the baselines start from the {h} ground-truth frames before them. "
@@ -1557,10 +1649,19 @@ def _method_lines(context: dict[str, Any]) -> list[str]:
         "1st and 99th percentile of x) of every frame, drawn for the first trajectory in "
         "fronts.png.",
         *_rest_lines(context),
-        "- Time: wall-clock per simulated frame, mean over every frame of every trajectory. "
+        "- Time: wall-clock per simulated frame"
+        + (f" (one step of the model, {spacing_text(context['dt'])})" if stride > 1 else "")
+        + ", mean over every frame of every trajectory. "
         "Learned rows: graph building + features + model + integration (the split adds up to "
         "the total; one untimed warm-up rollout first). MPM: the whole frame (substeps, "
-        "transfers). Baselines: the numpy extrapolation.",
+        "transfers)"
+        + (
+            f", i.e. the {mpm_stride} frames of its own it simulates per frame here, "
+            f"{spacing_text(context['dt'] / mpm_stride)} apart"
+            if mpm_stride > 1
+            else ""
+        )
+        + ". Baselines: the numpy extrapolation.",
         "- A value of 0 is exact (the deterministic simulator reproducing its own data); "
         "`inf` means the rollout diverged before the end of that horizon; `n/a`: not computed "
         "(see status). A diverged row's status (and table.csv's diverged_at_step) gives the "
@@ -1604,7 +1705,7 @@ def _markdown_report(
         "",
         f"![error against run time]({_relative(files['error_vs_time'], out)})",
         "",
-        _markdown_table(rows, columns),
+        _markdown_table(rows, columns, _frame_name(context["dt"], context["frame_stride"])),
         "## How to read it",
         "",
         *_method_lines(context),
@@ -1691,7 +1792,7 @@ def _html_report(
         + items(_context_lines(context))
         + f'<p><img src="{e(_relative(files["error_vs_time"], out))}" alt="error against run time" '
         'style="max-width:100%"></p>'
-        + table(_markdown_table(rows, columns))
+        + table(_markdown_table(rows, columns, _frame_name(context["dt"], context["frame_stride"])))
         + "<h2>How to read it</h2>"
         + items(_method_lines(context))
         + images

@@ -53,6 +53,7 @@ __all__ = [
     "TIMING_PARTS",
     "Rollout",
     "RolloutDiverged",
+    "frame_stride_metadata",
     "load_rollout",
     "rollout",
     "save_deepmind_pickle",
@@ -513,6 +514,13 @@ def rollout(
 
 
 # ---------------------------------------------------------------------------------- files
+
+
+def frame_stride_metadata(dataset_dt: float, stride: int) -> dict[str, Any]:
+    """What a rollout file records of the frames it ran on: every `stride`-th frame of a
+    dataset whose frames are `dataset_dt` seconds apart (gns.data.at_frame_stride), so its
+    frames are stride * dataset_dt apart."""
+    return {"frame_stride": int(stride), "dataset_dt": float(dataset_dt)}
 
 
 def _plain(value: Any) -> Any:

@@ -28,6 +28,7 @@ from torch import Tensor, nn
 import gns.ops as ops
 from gns.cconv import CConv
 from gns.config import Config, SceneConfig
+from gns.data.stride import frame_stride
 from gns.model import EncodeProcessDecode
 from gns.noise import sample_noise
 from gns.normalization import FixedNormalizer, Normalizer, RunningNormalizer
@@ -57,7 +58,9 @@ class Scene:
     context (0: none). material_property_size: width of the per-particle material property.
     kinematic_particle_types: no noise, no loss, ground truth in rollouts. gravity: per-frame
     acceleration (D,), used by model.add_gravity. wall_clip: wall distances are clipped to
-    [-wall_clip, wall_clip] radii.
+    [-wall_clip, wall_clip] radii. dt: seconds between the data's frames (metadata.json's dt),
+    so one step of the model, which is applied to frames that far apart (see
+    LearnedSimulator.frame_stride_for); None in checkpoints written before it was recorded.
     """
 
     dim: int
@@ -71,6 +74,7 @@ class Scene:
     kinematic_particle_types: tuple[int, ...] = (3,)
     gravity: tuple[float, ...] | None = None
     wall_clip: float = 1.0
+    dt: float | None = None
 
     def __post_init__(self) -> None:
         if self.dim not in (2, 3):
@@ -97,6 +101,8 @@ class Scene:
             raise ValueError("context_size and material_property_size must be >= 0")
         if not self.wall_clip > 0:
             raise ValueError(f"Scene.wall_clip must be positive, got {self.wall_clip}")
+        if self.dt is not None and not (math.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"Scene.dt must be a positive number of seconds, got {self.dt}")
 
     @property
     def wall_axes(self) -> tuple[int, ...]:
@@ -152,6 +158,7 @@ class Scene:
             kinematic_particle_types=tuple(kinematic),
             gravity=gravity,
             wall_clip=config.wall_clip or metadata.boundary_augment,
+            dt=metadata.dt,
         )
 
     @classmethod
@@ -326,6 +333,21 @@ class LearnedSimulator(nn.Module):
                 f"{size} for the scene's context"
             )
         return FixedNormalizer(mean, std, min_std=norm.min_std)
+
+    # ------------------------------------------------------------------ time
+
+    @property
+    def frame_dt(self) -> float | None:
+        """Seconds per step of the model: the frame spacing of the data it was trained on
+        (None for checkpoints written before it was recorded)."""
+        return self.scene.dt
+
+    def frame_stride_for(self, metadata: Any) -> int:
+        """Every how many frames of a dataset (a gns.data.Metadata, or anything with its dt)
+        this model reads: frame_dt / metadata.dt, a whole number >= 1 (gns.data.frame_stride;
+        1 when frame_dt is unknown). ValueError when the data's spacing does not divide the
+        model's step. Give gns.data.at_frame_stride the result."""
+        return frame_stride(self.frame_dt, metadata.dt)
 
     # ------------------------------------------------------------------ particles and geometry
 

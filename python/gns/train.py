@@ -518,6 +518,10 @@ def train(
     history = config.model.velocity_history + 1
     if checkpoint is not None:
         simulator = simulator_from_checkpoint(checkpoint)
+        if simulator.scene.dt is None:
+            # A run begun before checkpoints recorded the frame spacing: the data it resumes
+            # on is the data it trains on, so its checkpoints from now on know their spacing.
+            simulator.scene = dataclasses.replace(simulator.scene, dt=dataset.metadata.dt)
     else:
         scene = Scene.from_dataset(dataset, config.scene)
         torch.manual_seed(tc.seed)  # the initial weights (the same on every rank)

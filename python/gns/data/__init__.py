@@ -6,6 +6,8 @@
     validate_dataset            -> every problem found in a dataset
     convert                     -> the dataset in another layout, written atomically
     write_dataset               -> a dataset folder from one's own arrays, written atomically
+    frame_stride, at_frame_stride
+                                -> a model's frame spacing on finer data: every k-th frame
 
 Nothing here imports gns._core: the readers are plain Python + numpy + h5py.
 """
@@ -16,6 +18,7 @@ from gns.data.dataset import Dataset, available_splits, open_dataset
 from gns.data.errors import DatasetError
 from gns.data.metadata import Metadata
 from gns.data.stats import Statistics, StatisticsAccumulator, compute_statistics
+from gns.data.stride import at_frame_stride, describe_frame_stride, frame_stride
 from gns.data.trajectory import Trajectory
 from gns.data.validate import Problem, validate_dataset
 from gns.data.windows import (
@@ -41,11 +44,14 @@ __all__ = [
     "StatisticsAccumulator",
     "Trajectory",
     "Window",
+    "at_frame_stride",
     "available_splits",
     "collate",
     "compute_statistics",
     "convert",
     "crc32c",
+    "describe_frame_stride",
+    "frame_stride",
     "masked_crc32c",
     "open_dataset",
     "pack_batches",

@@ -9,11 +9,11 @@ step_context, geoelements only a per-trajectory material_property. A constant on
 step_context becomes a scalar material_property and back; anything else that a target cannot
 hold is an error, never silently dropped.
 
-`frame_stride` k keeps every k-th frame (dt becomes k dt): a coarser time step makes each
-predicted acceleration k^2 times larger against the same input noise and a rollout k times
-shorter. The train split keeps every phase (frames p, p + k, ... for p < k, each its own
-trajectory, so no frame of the training data is lost); the other splits keep phase 0, so a
-rollout still starts at the first frame. Every output trajectory has the same length, that of
+`frame_stride` k keeps every k-th frame (gns.data.at_frame_stride; dt becomes k dt): a coarser
+time step makes each predicted acceleration k^2 times larger against the same input noise and a
+rollout k times shorter. The train split keeps every phase (frames p, p + k, ... for p < k, each
+its own trajectory, so no frame of the training data is lost); the other splits keep phase 0, so
+a rollout still starts at the first frame. Every output trajectory has the same length, that of
 phase k - 1, and the statistics are computed anew from the strided train split.
 """
 
@@ -33,6 +33,7 @@ from gns.data.h5 import write_h5
 from gns.data.metadata import Metadata
 from gns.data.npz import write_npz
 from gns.data.stats import StatisticsAccumulator
+from gns.data.stride import at_frame_stride, frames_at_stride
 from gns.data.trajectory import Trajectory
 
 TARGETS = ("deepmind", "npz", "h5", "lagrangebench")
@@ -76,20 +77,6 @@ def adapt(trajectory: Trajectory, to: str) -> Trajectory:
         context,
         material,
         key=trajectory.key,
-        source=trajectory.source,
-    )
-
-
-def subsample(trajectory: Trajectory, stride: int, phase: int, frames: int) -> Trajectory:
-    """Frames phase, phase + stride, ... of `trajectory`, `frames` of them."""
-    picked = slice(phase, phase + (frames - 1) * stride + 1, stride)
-    context = trajectory.step_context
-    return Trajectory(
-        trajectory.positions[picked],
-        trajectory.particle_type,
-        None if context is None else context[picked],
-        trajectory.material_property,
-        key=trajectory.key * stride + phase,
         source=trajectory.source,
     )
 
@@ -163,7 +150,7 @@ def convert(
 def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
     if stride == 1:
         return metadata
-    frames = _strided_frames(metadata.sequence_length + 1, stride)
+    frames = frames_at_stride(metadata.sequence_length + 1, stride)
     if frames < 2:
         raise ValueError(
             f"frame_stride {stride} leaves fewer than 2 frames of the "
@@ -180,16 +167,11 @@ def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
     )
 
 
-def _strided_frames(frames: int, stride: int) -> int:
-    """Frames of the last phase (k - 1, 2k - 1, ...) of `frames`: what every phase keeps."""
-    return (frames - stride) // stride + 1
-
-
 def _strided(dataset: Iterable[Trajectory], split: str, stride: int) -> Iterable[Trajectory]:
     if stride == 1:
         return dataset
     return (
-        subsample(trajectory, stride, phase, _strided_frames(trajectory.num_frames, stride))
+        at_frame_stride(trajectory, stride, phase=phase)
         for trajectory in dataset
         for phase in range(stride if split == "train" else 1)
     )
