@@ -23,3 +23,18 @@ def fp32_unless_asked(monkeypatch):
     import gns.rollout
 
     monkeypatch.setattr(gns.rollout, "native_bf16", lambda device: False)
+
+
+@pytest.fixture(scope="session")
+def strided(tmp_path_factory):
+    """(run, native data, converted data) of test_rollout.strided_run: a model of 7.5 ms steps
+    and data with 2.5 ms frames, made once for every test that needs it."""
+    import torch
+    from test_rollout import strided_run
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return strided_run(tmp_path_factory.mktemp("strided"))
+    finally:
+        torch.set_num_threads(threads)

@@ -18,7 +18,6 @@ from gns.cli import main
 from gns.data import DatasetError
 from gns.rollout import load_rollout, save_rollout
 from gns.train import train
-from test_rollout import strided_run
 from test_train import config, make_dataset
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -430,18 +429,6 @@ def test_eval_finds_a_relative_recorded_checkpoint_from_here_or_the_run(
 
 
 # ------------------------------------------------------------------- frame spacings
-
-
-@pytest.fixture(scope="module")
-def strided(tmp_path_factory) -> tuple[Path, Path, Path]:
-    """(run, native data, converted data) of test_rollout.strided_run: a model of 7.5 ms steps
-    and data with 2.5 ms frames."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return strided_run(tmp_path_factory.mktemp("strided"))
-    finally:
-        torch.set_num_threads(threads)
 
 
 def with_dt(data: Path, folder: Path, dt: float) -> Path:

@@ -24,7 +24,6 @@ from gns.evaluate import (
 from gns.metrics import front_positions, runout_extent
 from gns.rollout import Rollout, load_rollout, save_rollout
 from gns.simulator import LearnedSimulator, Scene
-from test_rollout import strided_run
 from test_train import make_dataset
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -289,17 +288,6 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
     # Bad input is an error message and exit status 2, not a traceback.
     assert main(["eval", "--run", str(tmp_path / "nowhere"), "--data", str(data)]) == 2
     assert "argument --run: no such file or folder" in capsys.readouterr().err
-
-
-@pytest.fixture(scope="module")
-def strided(tmp_path_factory):
-    """test_rollout.strided_run: a model of 7.5 ms steps, data with 2.5 ms frames."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return strided_run(tmp_path_factory.mktemp("strided"))
-    finally:
-        torch.set_num_threads(threads)
 
 
 def test_eval_on_finer_data_scores_the_frames_the_model_steps_between(strided, tmp_path, capsys):

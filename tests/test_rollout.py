@@ -516,16 +516,6 @@ def strided_run(root: Path) -> tuple[Path, Path, Path]:
     return root / "run", native, root / "converted"
 
 
-@pytest.fixture(scope="module")
-def strided(tmp_path_factory) -> tuple[Path, Path, Path]:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return strided_run(tmp_path_factory.mktemp("strided"))
-    finally:
-        torch.set_num_threads(threads)
-
-
 def test_a_model_rolls_out_on_finer_data_at_its_own_frame_spacing(strided, tmp_path, capsys):
     from gns.cli import main
 
