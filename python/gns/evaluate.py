@@ -139,8 +139,8 @@ def evaluate_rollouts(
       finite, outside_box                  1 if every frame is finite; how far the farthest
                                            particle left the box (with bounds)
       runout, pile_height, neighbours      the last frame's deposit (gns.metrics.deposit): the
-                                           1st-to-99th
-                                           percentile extent of x, the 99th percentile of y
+                                           1st-to-99th percentile extent of x, the 99th
+                                           percentile of y
                                            above the floor (the box's lower y bound, else the
                                            truth's lowest y at frame 0), the mean neighbour
                                            count within the connectivity radius

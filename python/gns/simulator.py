@@ -403,8 +403,8 @@ class LearnedSimulator(nn.Module):
     ) -> tuple[Tensor, Tensor, Tensor]:
         """graph() from `host`, the positions already copied to the CPU (the Rust core reads
         host memory): the edges go back to the positions' device once, and the displacements
-        are taken there from the positions themselves."""
-        x = most_recent_position.detach()
+        are taken there from the (detached) positions themselves."""
+        x = most_recent_position
         periodic = any(self.scene.periodic)
         kwargs: dict[str, Any] = dict(self_edges=self.config.model.self_edges)
         if n_node is not None:

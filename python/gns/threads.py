@@ -135,10 +135,6 @@ class StepTuner(Generic[Setting]):
 
     # ------------------------------------------------------------------ steps
 
-    @property
-    def probing(self) -> bool:
-        return bool(self._queue)
-
     def _use(self, setting: Setting) -> None:
         if setting != self._active:
             self._apply(setting)
