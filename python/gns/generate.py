@@ -13,9 +13,12 @@ Sand 320, Goop 400, WaterRamps 600, MultiMaterial 1000):
   ramps          water or sand blocks among 1-3 static ramps (kinematic particles, type 3)
   continuous     sand as above whose friction angle is U(20, 45) degrees per trajectory, stored
                  as the global feature tan(angle) (DeepMind's step_context)
-All share one resolution (RESOLUTION: lattice spacing 0.01, grid dx 0.025), chosen with `sand`'s
-speed so that waterdrop and sand match the paper's per-frame statistics within a factor 1.5
-(benches/mpm.py --calibrate).
+  sand-taichi    sand2d-taichi's scenes: one 0.2 x 0.2 sand block at rest or thrown at up to
+                 1 m/s per axis, friction U(20, 45) degrees as in continuous, 350 frames, at
+                 that dataset's own resolution (grid 64, 4 particles a cell)
+All but sand-taichi share one resolution (RESOLUTION: lattice spacing 0.01, grid dx 0.025),
+chosen with `sand`'s speed so that waterdrop and sand match the paper's per-frame statistics
+within a factor 1.5 (benches/mpm.py --calibrate).
 
 Metadata bounds are where the simulator stops the particles (see `confinement`), the innermost
 grid nodes of its walls, not the walls' nominal position MpmScene.bounds.
@@ -254,6 +257,33 @@ def continuous(rng: np.random.Generator) -> tuple[MpmScene, int]:
     return _scene(blocks, context=[math.tan(math.radians(angle))]), 321
 
 
+# sand2d-taichi's setup (Taichi-Elements as geoelements ran it; the defaults of MpmScene): one
+# 0.2 x 0.2 block anywhere in the walls, at rest or thrown at U(-1, 1) m/s per axis (its 12
+# thrown runs reach 0.95), 350 frames 2.5 ms apart.
+TAICHI_SIDE = 0.2
+TAICHI_SPEED = 1.0
+TAICHI_FRAMES = 350
+
+
+def sand_taichi(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """One 0.2 x 0.2 block of sand, friction angle U(20, 45) degrees given as tan(angle) (as
+    `continuous`), half at rest and half thrown, at sand2d-taichi's resolution (grid 64, 4
+    particles a cell, spacing 1/128): training data for a model of that dataset."""
+    angle = float(rng.uniform(20.0, 45.0))
+    # Half a lattice spacing inside the walls, as Taichi's blocks reach 0.101.
+    lo, hi = WALLS[0][0] + MARGIN / 4, WALLS[0][1] - MARGIN / 4 - TAICHI_SIDE
+    lower = rng.uniform(lo, hi, 2)
+    thrown = rng.random() < 0.5
+    velocity = rng.uniform(-TAICHI_SPEED, TAICHI_SPEED, 2) if thrown else np.zeros(2)
+    block = Block(
+        Sand(friction_angle_deg=angle),
+        lower=(float(lower[0]), float(lower[1])),
+        size=(TAICHI_SIDE, TAICHI_SIDE),
+        velocity=(float(velocity[0]), float(velocity[1])),
+    )
+    return MpmScene([block], context=[math.tan(math.radians(angle))]), TAICHI_FRAMES
+
+
 PRESETS: dict[str, Preset] = {
     "waterdrop": waterdrop,
     "water": water,
@@ -262,6 +292,7 @@ PRESETS: dict[str, Preset] = {
     "multimaterial": multimaterial,
     "ramps": ramps,
     "continuous": continuous,
+    "sand-taichi": sand_taichi,
 }
 
 
