@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water, simulate
+from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water, particles, simulate
 
 SAND2D = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
 G_FRAME = -9.81 * 0.0025**2  # free fall per frame^2
@@ -147,3 +148,52 @@ def test_a_progress_callback_sees_every_frame_and_can_stop_the_run():
 
     with pytest.raises(KeyboardInterrupt):
         simulate(scene, 10, progress=stop)
+
+
+def test_given_positions_that_are_the_lattice_give_the_lattices_run_bit_for_bit():
+    # Sizes that are whole multiples of the spacing 1/128 (grid 64, 4 particles per cell): the
+    # blocks' area over their points is then exactly spacing^2, the lattice's volume.
+    blocks = [
+        Block(Sand(friction_angle_deg=25.0), (0.3, 0.1), (0.25, 0.125), (0.5, 0.0)),
+        Block(Water(), (0.6, 0.4), (0.125, 0.125), (0.0, -1.0)),
+    ]
+    scene = MpmScene(blocks)
+    ours = simulate(scene, 40)
+    start = particles(scene)
+    given = simulate(scene, 40, positions=start["positions"])
+    np.testing.assert_array_equal(given.positions, ours.positions)
+    np.testing.assert_array_equal(given.particle_type, ours.particle_type)
+    # Shuffled, each point still takes its own block's material and velocity.
+    order = np.random.default_rng(0).permutation(len(start["positions"]))
+    shuffled = particles(scene, positions=start["positions"][order])
+    for key in ("positions", "velocities", "material", "particle_type"):
+        np.testing.assert_array_equal(shuffled[key], start[key][order], key)
+    assert shuffled["particle_volume"] == start["particle_volume"] == (1 / 128) ** 2
+
+
+def test_given_positions_keep_the_datas_volume_whatever_the_grid():
+    scene = MpmScene([Block(Sand(), (0.4, 0.1), (0.2, 0.2))])
+    points = np.random.default_rng(0).uniform((0.4, 0.1), (0.6, 0.3), (500, 2))
+    for grid in (64, 32, 20):
+        start = particles(replace(scene, grid=grid), positions=points)
+        assert start["particle_volume"] == pytest.approx(0.04 / 500, rel=1e-12)
+        np.testing.assert_array_equal(start["positions"], points)
+    assert particles(replace(scene, grid=32))["particle_volume"] != scene.spacing**2
+
+
+def test_given_positions_outside_every_block_are_refused_by_name():
+    scene = MpmScene(
+        [Block(Sand(), (0.4, 0.1), (0.2, 0.2)), Block(Water(), (0.7, 0.5), (0.2, 0.1))]
+    )
+    points = np.array([[0.5, 0.2], [0.75, 0.55], [0.65, 0.2]])
+    message = r"given point 2 at \(0\.65, 0\.2\) is in no block .*lower \(0\.4, 0\.1\), size"
+    with pytest.raises(ValueError, match=message):
+        simulate(scene, 2, positions=points)
+    # Within the margin it belongs to the nearest block.
+    start = particles(scene, positions=points, margin=0.06)
+    assert start["particle_type"].tolist() == [6, 5, 6]
+    with pytest.raises(ValueError, match="block 1 .* holds no given point"):
+        particles(scene, positions=points[[0, 2]], margin=0.06)
+    # One volume for all: blocks filled at different densities would get the wrong masses.
+    with pytest.raises(ValueError, match="different densities"):
+        particles(scene, positions=np.vstack([points[:2], [[0.45, 0.15], [0.55, 0.25]]]))

@@ -10,9 +10,14 @@ the [0, 1]^2 domain:
     result.to_trajectory()  # a gns.data.Trajectory with DeepMind particle types
 
 Accuracy against cost is set by `grid` (cells per unit length), `particles_per_cell` (the
-lattice spacing is dx / sqrt(particles_per_cell)) and `cfl` (substeps). Units are SI: metres,
-seconds, kg/m^3, Pa. Particle types follow the DeepMind datasets (water 5, sand 6, goop 7,
-obstacles 3, kinematic).
+lattice spacing is dx / sqrt(particles_per_cell)) and `cfl` (substeps). Instead of the lattice,
+the blocks can be filled with given points, e.g. another simulator's first frame, so that
+particle i of the result is particle i of that data:
+
+    result = simulate(scene, frames=350, positions=their_frame_0)
+
+Units are SI: metres, seconds, kg/m^3, Pa. Particle types follow the DeepMind datasets (water 5,
+sand 6, goop 7, obstacles 3, kinematic).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ import math
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -172,23 +178,97 @@ def _segment_points(segment: Segment, spacing: float) -> np.ndarray:
     return np.concatenate(rows)
 
 
-def particles(scene: MpmScene, seed: int | None = None) -> dict[str, np.ndarray]:
+def _block_of_each(blocks: Sequence[Block], points: np.ndarray, margin: float) -> np.ndarray:
+    """(N,) the index of the block each point lies in: the nearest rectangle (distance 0
+    inside; the first of equally near ones), which must be at most `margin` away. ValueError
+    naming the first point that no block holds, and the blocks."""
+    if not blocks:
+        raise ValueError("given positions need blocks to take their material and velocity from")
+    distances = []
+    for block in blocks:
+        lower = np.asarray(block.lower, float)
+        upper = lower + np.asarray(block.size, float)
+        outside = np.maximum(np.maximum(lower - points, points - upper), 0.0)
+        distances.append(np.linalg.norm(outside, axis=1))
+    distance = np.stack(distances)  # (blocks, N)
+    index = np.argmin(distance, axis=0)
+    nearest = distance[index, np.arange(len(points))]
+    if (far := np.flatnonzero(~(nearest <= margin))).size:
+        i = int(far[0])
+        rectangles = "; ".join(
+            f"block {k}: lower {tuple(b.lower)}, size {tuple(b.size)}" for k, b in enumerate(blocks)
+        )
+        more = f" (and {far.size - 1} more)" if far.size > 1 else ""
+        raise ValueError(
+            f"given point {i} at {tuple(points[i].tolist())}{more} is in no block (nor within "
+            f"{margin:g} of one): {rectangles}"
+        )
+    return index
+
+
+def _given_volume(blocks: Sequence[Block], index: np.ndarray) -> float:
+    """One particle's volume when the blocks hold given points: the blocks' area over the
+    number of points (the core takes one volume for all). ValueError when a block holds no
+    point, or when the blocks are filled more than 10% more densely than one another (one
+    volume would then give their particles the wrong mass)."""
+    counts = np.bincount(index, minlength=len(blocks))
+    areas = np.array([float(np.prod(b.size)) for b in blocks])
+    if (empty := np.flatnonzero(counts == 0)).size:
+        raise ValueError(f"block {int(empty[0])} ({blocks[int(empty[0])]}) holds no given point")
+    each = areas / counts
+    if each.max() > 1.1 * each.min():
+        raise ValueError(
+            f"the blocks hold their given points at different densities (area per point "
+            f"{', '.join(f'{a:.3g}' for a in each)}); one particle volume cannot fit them all"
+        )
+    return float(areas.sum() / counts.sum())
+
+
+def particles(
+    scene: MpmScene,
+    seed: int | None = None,
+    *,
+    positions: np.ndarray | None = None,
+    margin: float = 0.0,
+) -> dict[str, Any]:
     """The initial particles of a scene: positions, velocities, material (index into
-    materials), particle_type, and the list of distinct materials."""
+    materials), particle_type, the list of distinct materials and particle_volume.
+
+    Without `positions` each block is a lattice of spacing scene.spacing (jittered by
+    scene.jitter) and a particle's volume is spacing^2. With `positions` (N, 2), the points
+    are the particles, in their order, each with the material and velocity of the block whose
+    rectangle holds it (or lies within `margin` of it; ValueError naming the point and the
+    blocks if none does), and the volume is the blocks' area over the number of points: the
+    data's, whatever the grid. Obstacles follow the blocks in both cases."""
     spacing = scene.spacing
     rng = np.random.default_rng(seed)
     materials: list[Material] = []
-    x, v, mat, types = [], [], [], []
     for block in scene.blocks:
         if block.material not in materials:
             materials.append(block.material)
-        points = lattice(block.lower, block.size, spacing)
-        if scene.jitter:
-            points = points + rng.uniform(-0.5, 0.5, points.shape) * scene.jitter * spacing
+    x, v, mat, types = [], [], [], []
+    if positions is not None:
+        points = np.asarray(positions, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 2 or not len(points):
+            raise ValueError(f"given positions must be (N, 2) with N > 0, got {points.shape}")
+        if not np.isfinite(points).all():
+            raise ValueError("given positions hold non-finite values")
+        block_of = _block_of_each(scene.blocks, points, margin)
+        volume = _given_volume(scene.blocks, block_of)
         x.append(points)
-        v.append(np.tile(np.asarray(block.velocity, float), (len(points), 1)))
-        mat.append(np.full(len(points), materials.index(block.material)))
-        types.append(np.full(len(points), block.material.particle_type))
+        v.append(np.array([scene.blocks[k].velocity for k in block_of], dtype=np.float64))
+        mat.append(np.array([materials.index(scene.blocks[k].material) for k in block_of]))
+        types.append(np.array([scene.blocks[k].material.particle_type for k in block_of]))
+    else:
+        volume = spacing**2
+        for block in scene.blocks:
+            points = lattice(block.lower, block.size, spacing)
+            if scene.jitter:
+                points = points + rng.uniform(-0.5, 0.5, points.shape) * scene.jitter * spacing
+            x.append(points)
+            v.append(np.tile(np.asarray(block.velocity, float), (len(points), 1)))
+            mat.append(np.full(len(points), materials.index(block.material)))
+            types.append(np.full(len(points), block.material.particle_type))
     if scene.obstacles:
         index = len(materials)
         for segment in scene.obstacles:
@@ -204,7 +284,8 @@ def particles(scene: MpmScene, seed: int | None = None) -> dict[str, np.ndarray]
         "velocities": np.ascontiguousarray(np.concatenate(v), dtype=np.float64),
         "material": np.concatenate(mat).astype(np.uint32),
         "particle_type": np.concatenate(types).astype(np.int64),
-        "materials": materials,  # type: ignore[dict-item]
+        "materials": materials,
+        "particle_volume": volume,
     }
 
 
@@ -228,9 +309,13 @@ def simulate(
     frames: int,
     *,
     seed: int | None = None,
+    positions: np.ndarray | None = None,
+    margin: float = 0.0,
     progress: Callable[[int], object] | None = None,
 ) -> MpmResult:
-    """Run `scene` for `frames` frames (frame 0 the initial state). A run that produces NaN,
+    """Run `scene` for `frames` frames (frame 0 the initial state), its blocks filled with the
+    lattice or with the given `positions` (N, 2) (see `particles`; `margin`: how far outside
+    its block's rectangle a given point may lie). A run that produces NaN,
     loses a particle out of the domain or needs more than max_substeps in a frame raises
     ValueError naming the frame. `progress(frame)` is called after every frame.
 
@@ -238,8 +323,8 @@ def simulate(
     (gns.threads.StepTuner): with another program on one core, waiting for the pool's second
     thread made sand frames 2-2.5x slower than one thread (benches/mpm.py on 2 cores). The
     positions do not depend on it; RAYON_NUM_THREADS in the environment fixes the pool."""
-    start = particles(scene, seed)
-    core_materials = [m.core() for m in start["materials"]]  # type: ignore[attr-defined]
+    start = particles(scene, seed, positions=positions, margin=margin)
+    core_materials = [m.core() for m in start["materials"]]
     if scene.obstacles:
         core_materials.append(("obstacle", 0.0, []))
     positions, seconds, substeps = _core.mpm_simulate(
@@ -247,7 +332,7 @@ def simulate(
         start["velocities"],
         start["material"],
         core_materials,
-        scene.spacing**2,
+        start["particle_volume"],
         frames,
         grid=scene.grid,
         bounds=[list(b) for b in scene.bounds],

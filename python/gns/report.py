@@ -8,11 +8,16 @@ One row per method, each scored on the same frames of the same held-out trajecto
                       checkpoints can be compared side by side);
                       its time split into graph building, features, model and integration
                       (gns.rollout times every step) and the device it ran on
-  MPM                 the reference simulator (gns.mpm) that made the data, re-run at its native
-                      settings and at cheaper ones (a coarser grid, a larger CFL number, i.e.
-                      fewer substeps). Only for datasets written by `gns generate`, whose
-                      metadata names the preset, seed and draw of every trajectory; for any other
-                      dataset these rows are left out and the report says why
+  MPM                 the reference simulator (gns.mpm), re-run at the data's native settings
+                      and at cheaper ones (a coarser grid, a larger CFL number, i.e. fewer
+                      substeps). For datasets written by `gns generate`, whose metadata names
+                      the preset, seed and draw of every trajectory: the scenes that made them.
+                      For manifest folders (another simulator's data, e.g. sand2d-taichi), whose
+                      manifest gives every trajectory's block, velocity and friction angle: the
+                      runs start from the data's own frame-0 particles, so particle i is the
+                      data's particle i, and even the native row differs from the data (two
+                      simulators). For any other dataset these rows are left out and the report
+                      says why
   constant velocity   every particle keeps its last velocity (gns.metrics)
   static              every particle stays where the last input frame has it (gns.metrics):
                       for sand that comes to rest, much harder to beat late in a rollout
@@ -332,7 +337,8 @@ class _Scoring:
 @dataclass
 class Row:
     """One method of the table. role: "learned" (a checkpoint), "mpm" (the reference simulator;
-    native: at the settings that made the data) or "baseline" (constant velocity, static).
+    native: at the settings that made the data; same_simulator: gns.mpm made the data, so
+    the native row reproduces it) or "baseline" (constant velocity, static).
     values: metric key (and deposit figure, DEPOSIT_FIGURES) -> mean over trajectories (inf:
     diverged; missing: not computed); split: TIMING_PARTS -> seconds per frame (learned rows
     only), whose sum is seconds_per_frame; curve, ot_curve: per-frame means for the
@@ -357,6 +363,9 @@ class Row:
     diverged: list[tuple[int, int]] = field(default_factory=list)
     deposits: list[dict[str, Any]] = field(default_factory=list)
     rest: dict[str, Any] | None = None
+    # MPM rows: whether this simulator made the data (gns generate), so that the native row is
+    # the ground truth itself; False on another simulator's data, where it is a contender.
+    same_simulator: bool = True
 
     def add_scores(self, scores: Sequence[dict[str, Any]], trajectories: Sequence[int]) -> None:
         """Means over the trajectories' scores (score's output, one per trajectory index)."""
@@ -626,55 +635,62 @@ def _generator(metadata: Any) -> dict[str, Any] | None:
 
 
 @dataclass(frozen=True)
-class _MpmPlan:
-    """The MPM rows to make: the (scene, lattice seed) of every trajectory and the settings to
-    re-run them at, or no rows and the reason."""
+class _MpmRun:
+    """How to re-run one trajectory: its scene, filled either with the scene's own lattice
+    (seed: the lattice's jitter seed, as `gns generate` made it) or with `positions`, the
+    data's frame 0 (margin: how far outside its block a point may lie, see gns.mpm.particles)."""
 
-    scenes: list[tuple[Any, int]]
+    scene: Any
+    seed: int | None = None
+    positions: np.ndarray | None = None
+    margin: float = 0.0
+
+
+@dataclass(frozen=True)
+class _MpmPlan:
+    """The MPM rows to make: the run of every trajectory and the settings to re-run them at,
+    or no rows and the reason."""
+
+    runs: list[_MpmRun]
     variants: list[MpmVariant]
     reason: str | None = None
     # Frames the simulator makes per frame of the table: their spacings' ratio (at a frame
     # stride, or on data converted to one, the table's frames are farther apart than its own).
     stride: int = 1
+    # Whether gns.mpm made the data (gns generate): then the native row reproduces it exactly.
+    # Otherwise (a manifest folder, another simulator's data) the runs start from the data's
+    # particles, `made_by` names that simulator, and the native row is a contender.
+    same_simulator: bool = True
+    made_by: str = ""
 
 
 def _mpm_plan(
-    metadata: Any,
+    dataset: Any,
     split: str,
     trajectories: list[Any],
     indices: list[int],
     specs: Sequence[str],
     frame_dt: float,
 ) -> _MpmPlan:
-    """Check the MPM settings and find the scenes that made the data, before any rollout: a
-    bad --mpm must be refused at once, not after minutes of learned rollouts. frame_dt: the
-    seconds between the frames every row predicts."""
+    """Check the MPM settings and find the scenes to re-run, before any rollout: a bad --mpm
+    must be refused at once, not after minutes of learned rollouts. `trajectories` are the
+    dataset's `indices` of `split` (at the table's frames); frame_dt: the seconds between the
+    frames every row predicts."""
     from gns import mpm
-    from gns.generate import preset_scene
 
-    generator = _generator(metadata)
-    if generator is None:
-        # No scenes to re-run, but the settings are still checked (against the defaults).
-        default = mpm.MpmScene([])
-        parse_mpm_variants(specs, default.grid, default.cfl)
-        return _MpmPlan(
-            [],
-            [],
-            "MPM rows: this dataset was not written by `gns generate` (its metadata.json has no "
-            "generator entry naming preset, seed and draws), so the simulator that made it "
-            "cannot be re-run on the same scenes",
-        )
-    draws = generator.get("draws", {}).get(split) or [0] * (max(indices) + 1)
-    scenes = []
-    for index in indices:
-        scene, _, lattice_seed = preset_scene(
-            generator["preset"], int(generator["seed"]), split, index, int(draws[index])
-        )
-        scenes.append((scene, lattice_seed))
-    variants = parse_mpm_variants(specs, scenes[0][0].grid, scenes[0][0].cfl)
+    manifest = dataset.layout == "manifest"
+    if manifest:
+        runs, reason = _manifest_runs(dataset.source, trajectories, indices)
+    else:
+        runs, reason = _generated_runs(dataset.metadata, split, trajectories, indices)
+    # The settings are checked even when there is nothing to run (against the defaults).
+    native = runs[0].scene if runs else mpm.MpmScene([])
+    variants = parse_mpm_variants(specs, native.grid, native.cfl)
     if not variants:
         return _MpmPlan([], [])
-    own_dt = scenes[0][0].frame_dt
+    if reason is not None:
+        return _MpmPlan([], [], reason)
+    own_dt = native.frame_dt
     try:
         stride = frame_stride(frame_dt, own_dt)
     except ValueError:
@@ -685,20 +701,127 @@ def _mpm_plan(
             f"which does not divide the {spacing_text(frame_dt)} between the frames every row "
             "predicts",
         )
-    for (scene, lattice_seed), index, trajectory in zip(scenes, indices, trajectories, strict=True):
+    if not manifest:
+        return _MpmPlan(runs, variants, stride=stride)
+    # "Taichi-Elements MLS-MPM (2D), Drucker-Prager sand": the simulator, not its material.
+    made_by = str(dataset.source.manifest.get("simulator") or "another simulator")
+    made_by = made_by.split(",")[0].strip()
+    return _MpmPlan(runs, variants, stride=stride, same_simulator=False, made_by=made_by)
+
+
+def _generated_runs(
+    metadata: Any, split: str, trajectories: list[Any], indices: list[int]
+) -> tuple[list[_MpmRun], str | None]:
+    """The scenes and lattice seeds that made a `gns generate` dataset's trajectories, or why
+    there are none: the metadata names no generator, or the preset no longer gives the data's
+    initial particles."""
+    from gns import mpm
+    from gns.generate import preset_scene
+
+    generator = _generator(metadata)
+    if generator is None:
+        return [], (
+            "MPM rows: this dataset was not written by `gns generate` (its metadata.json has no "
+            "generator entry naming preset, seed and draws) nor is it a manifest folder giving "
+            "every trajectory's block, so the scenes that made it cannot be re-run"
+        )
+    draws = generator.get("draws", {}).get(split) or [0] * (max(indices) + 1)
+    runs = []
+    for index, trajectory in zip(indices, trajectories, strict=True):
+        scene, _, lattice_seed = preset_scene(
+            generator["preset"], int(generator["seed"]), split, index, int(draws[index])
+        )
+        runs.append(_MpmRun(scene, lattice_seed))
         start = mpm.particles(scene, lattice_seed)["positions"].astype(np.float32)
         if start.shape != trajectory.positions[0].shape or not np.allclose(
             start, trajectory.positions[0], rtol=0, atol=1e-6
         ):
-            return _MpmPlan(
-                [],
-                [],
+            return runs, (
                 f"MPM rows: preset {generator['preset']!r} (seed {generator['seed']}) no longer "
                 f"gives the initial particles of {split} trajectory {index} "
                 f"({start.shape[0]} particles vs {trajectory.n_particles}); this dataset was "
-                "made by another version of the presets and cannot be re-run",
+                "made by another version of the presets and cannot be re-run"
             )
-    return _MpmPlan(scenes, variants, stride=stride)
+    return runs, None
+
+
+def _manifest_scene(manifest: Mapping[str, Any], entry: Mapping[str, Any]) -> Any:
+    """The gns.mpm scene of one manifest entry: one block of sand with the entry's friction
+    angle, `cube` [x, y, width, height] and `initial_velocity` [vx, vy], in the manifest's box
+    with its wall friction, gravity, frame spacing, grid and material constants where it gives
+    them (gns.mpm's defaults, those of sand2d-taichi, otherwise). KeyError, TypeError or
+    ValueError when the entry lacks or mangles one."""
+    from gns import mpm
+
+    x, y, width, height = (float(v) for v in entry["cube"])
+    vx, vy = (float(v) for v in entry["initial_velocity"])
+    sand = mpm.Sand(friction_angle_deg=float(entry["friction_angle_deg"]))
+    if "rho" in manifest:
+        sand = dataclasses.replace(sand, density=float(manifest["rho"]))
+    if "elastic_modulus" in manifest:
+        sand = dataclasses.replace(sand, youngs_modulus=float(manifest["elastic_modulus"]))
+    if "poisson_ratio" in manifest:
+        sand = dataclasses.replace(sand, poisson_ratio=float(manifest["poisson_ratio"]))
+    if not (width > 0 and height > 0):
+        raise ValueError(f"cube {entry['cube']} has no area")
+    scene = mpm.MpmScene([mpm.Block(sand, (x, y), (width, height), (vx, vy))])
+    changes: dict[str, Any] = {}
+    if "bounds" in manifest:
+        (x0, x1), (y0, y1) = manifest["bounds"]
+        changes["bounds"] = ((float(x0), float(x1)), (float(y0), float(y1)))
+    if "wall_friction" in manifest:
+        changes["wall_friction"] = float(manifest["wall_friction"])
+    if "gravity" in manifest:
+        gx, gy = manifest["gravity"]
+        changes["gravity"] = (float(gx), float(gy))
+    if "frame_dt_s" in manifest:
+        changes["frame_dt"] = float(manifest["frame_dt_s"])
+    if "grid" in manifest:
+        grid = manifest["grid"]
+        cells = {int(g) for g in grid} if isinstance(grid, list) else {int(grid)}
+        if len(cells) != 1:
+            raise ValueError(f"grid {grid}: gns.mpm's cells are square")
+        changes["grid"] = cells.pop()
+    return dataclasses.replace(scene, **changes)
+
+
+def _manifest_runs(
+    source: Any, trajectories: list[Any], indices: list[int]
+) -> tuple[list[_MpmRun], str | None]:
+    """For a manifest folder's trajectories (gns.data.manifest.ManifestSource, one split): the
+    scene of each from its own manifest entry, started from the trajectory's frame 0, or why
+    there are none (an entry without its block or velocity, a trajectory that is not its
+    entry's file, points outside the block)."""
+    from gns import mpm
+
+    runs = []
+    for index, trajectory in zip(indices, trajectories, strict=True):
+        entry = source.entries[index]
+        name = str(entry.get("file"))
+        if Path(trajectory.source) != source.folder / name:
+            return [], (
+                f"MPM rows: trajectory {index} was read from {trajectory.source}, not from "
+                f"{name}, the manifest entry it would be re-run from"
+            )
+        try:
+            scene = _manifest_scene(source.manifest, entry)
+        except KeyError as err:
+            return [], (
+                f"MPM rows: {source.manifest_path}'s entry for {name} has no {err} (the block "
+                "`cube` [x, y, width, height], `initial_velocity` [vx, vy] and "
+                "`friction_angle_deg` are needed to re-run it)"
+            )
+        except (TypeError, ValueError) as err:
+            return [], f"MPM rows: {source.manifest_path}'s entry for {name} is unusable: {err}"
+        # The data's frame 0 may be a step after the block was placed (sand2d-taichi's is:
+        # thrown blocks have moved |v| dt, up to 2.5 mm); a grid cell is what MPM resolves.
+        run = _MpmRun(scene, positions=trajectory.positions[0], margin=1.0 / scene.grid)
+        try:
+            mpm.particles(scene, positions=run.positions, margin=run.margin)
+        except ValueError as err:
+            return [], f"MPM rows: the frame 0 of {name} does not fill its block: {err}"
+        runs.append(run)
+    return runs, None
 
 
 def _mpm_rows(
@@ -714,29 +837,40 @@ def _mpm_rows(
     threads = machine()["rust_threads"]
     rows = []
     for variant in plan.variants:
-        changed = [variant.apply(scene) for scene, _ in plan.scenes]
+        changed = [variant.apply(run.scene) for run in plan.runs]
         grid, cfl = changed[0].grid, changed[0].cfl
         native = " (native)" if variant.native else ""
         setting = f"grid {grid} (dx {1 / grid:.3g}), cfl {cfl:g}{native}"
+        if not plan.same_simulator:
+            setting += f", from the data's particles ({plan.made_by}'s)"
         device = f"cpu, {_count(threads, 'rust thread')}"
         short = f"MPM grid {grid}, cfl {cfl:g}{native}"
         row = Row("MPM", setting, device, short=short, role="mpm", native=variant.native)
+        row.same_simulator = plan.same_simulator
         say(f"MPM {setting}")
         scores, seconds, substeps, failures = [], [], [], []
-        for (scene, lattice_seed), new, index, trajectory in zip(
-            plan.scenes, changed, indices, trajectories, strict=True
+        for run, new, index, trajectory in zip(
+            plan.runs, changed, indices, trajectories, strict=True
         ):
-            start = mpm.particles(scene, lattice_seed)["positions"]
-            moved = mpm.particles(new, lattice_seed)["positions"]
-            if moved.shape != start.shape or not np.allclose(moved, start, rtol=0, atol=1e-9):
-                failures.append(
-                    f"trajectory {index}: grid {new.grid} puts the particles elsewhere "
-                    f"({len(moved)} vs {len(start)}), so MSE would compare different particles"
-                )
-                continue
+            if run.positions is None:
+                start = mpm.particles(run.scene, run.seed)["positions"]
+                moved = mpm.particles(new, run.seed)["positions"]
+                if moved.shape != start.shape or not np.allclose(moved, start, rtol=0, atol=1e-9):
+                    failures.append(
+                        f"trajectory {index}: grid {new.grid} puts the particles elsewhere "
+                        f"({len(moved)} vs {len(start)}), so MSE would compare different "
+                        "particles"
+                    )
+                    continue
             k = plan.stride
             try:
-                result = mpm.simulate(new, (trajectory.num_frames - 1) * k + 1, seed=lattice_seed)
+                result = mpm.simulate(
+                    new,
+                    (trajectory.num_frames - 1) * k + 1,
+                    seed=run.seed,
+                    positions=run.positions,
+                    margin=run.margin,
+                )
             except ValueError as err:
                 failures.append(f"trajectory {index}: {err}")
                 continue
@@ -926,7 +1060,7 @@ def report(
     # Every row predicts the frames the models step between: every stride-th of the data's.
     items = [at_frame_stride(dataset[i], stride) for i in indices]
     frame_dt = metadata.dt * stride
-    plan = _mpm_plan(metadata, split, items, indices, mpm, frame_dt)
+    plan = _mpm_plan(dataset, split, items, indices, mpm, frame_dt)
     steps = min(t.num_frames for t in items) - history
     if steps < 1:
         at = f" at frame stride {stride}" if stride > 1 else ""
@@ -984,11 +1118,20 @@ def report(
         else:
             say("MPM rows")
             rows += _mpm_rows(plan, items, indices, scoring, say)
-            left_out.append(
-                "MPM with fewer particles: its particles would not be the data's, so MSE "
-                "(particle i against particle i) could not be computed; only coarser grids and "
-                "fewer substeps are compared"
-            )
+            if plan.same_simulator:
+                left_out.append(
+                    "MPM with fewer particles: its particles would not be the data's, so MSE "
+                    "(particle i against particle i) could not be computed; only coarser grids "
+                    "and fewer substeps are compared"
+                )
+            else:
+                left_out.append(
+                    "MPM on its own lattice of the blocks: the MPM rows start from the data's "
+                    f"particles instead (frame 0, made by {plan.made_by}), so that particle i "
+                    "is the data's particle i; the simulator that made the data is not re-run, "
+                    "and the cheaper settings change the grid and the substeps, never the "
+                    "particles"
+                )
         say("baselines: constant velocity, static")
         rows.append(_constant_velocity_row(items, indices, scoring))
         rows.append(_static_row(items, indices, scoring))
@@ -1042,6 +1185,8 @@ def report(
             "dataset_dt": metadata.dt,
             "frame_stride": stride,
             "mpm_frame_stride": plan.stride,
+            # Where the MPM rows start: the scenes that made the data or the data's particles.
+            "mpm_made_by": None if plan.same_simulator else plan.made_by,
             "floor": pile_floor(metadata.bounds, first.positions[0]),
             "radius": metadata.default_connectivity_radius,
             "rest_steps": rest_steps,
@@ -1480,6 +1625,8 @@ def conclusion(
     baseline = next((r for r in rows if r.method == CONSTANT_VELOCITY), None)
     static = next((r for r in rows if r.method == STATIC and r.role == "baseline"), None)
     reference = next((r for r in rows if r.native), None)
+    # The native MPM on its own data is the ground truth itself (error 0): not a contender.
+    exact = reference is not None and reference.same_simulator
     cheaper = [r for r in rows if r.role == "mpm" and not r.native]
     if not keys or baseline is None:
         return []
@@ -1521,8 +1668,7 @@ def conclusion(
 
     winners = []
     for k in keys:
-        # The native MPM is the ground truth itself (error 0): not a contender.
-        winner = _lowest([r for r in rows if not r.native], k)
+        winner = _lowest([r for r in rows if not (r.native and r.same_simulator)], k)
         if winner is None:
             continue
         text = f"{_horizon_phrase(k, steps)}: {winner.short}"
@@ -1535,9 +1681,7 @@ def conclusion(
         winners.append(text)
     if winners:
         left = ", leaving out the MPM at its native settings (it is the ground truth)"
-        sentences.append(
-            f"Lowest MSE{left if reference is not None else ''}: " + "; ".join(winners) + "."
-        )
+        sentences.append(f"Lowest MSE{left if exact else ''}: " + "; ".join(winners) + ".")
 
     if best is not None and cheaper:
         against = []
@@ -1614,12 +1758,24 @@ def _stride_lines(context: dict[str, Any]) -> list[str]:
 def _method_lines(context: dict[str, Any]) -> list[str]:
     h, s, k = context["history"], context["steps"], context["every"]
     stride, mpm_stride = context["frame_stride"], context["mpm_frame_stride"]
+    made_by = context.get("mpm_made_by")
+    if made_by is None:
+        mpm_start = (
+            "MPM rows are re-run from frame 0 with the scene and seed that made the data, so "
+            "their error at a frame includes their own drift since frame 0 (the simulator's "
+            "state holds more than positions and cannot be restarted from the data)."
+        )
+    else:
+        mpm_start = (
+            f"The data was made by another simulator ({made_by}): MPM rows run this project's "
+            "(gns.mpm) from the data's own frame-0 particles, with each trajectory's material, "
+            "block velocity and settings from its manifest, so their error at a frame is the two "
+            "simulators' disagreement since frame 0 (not zero, even at the native settings)."
+        )
     return [
         f"- Every row predicts frames {h} to {h + s - 1} ({s} frames) of each trajectory; the "
         f"learned model and the baselines start from the {h} ground-truth frames before them. "
-        "MPM rows are re-run from frame 0 with the scene and seed that made the data, so "
-        "their error at a frame includes their own drift since frame 0 (the simulator's state "
-        "holds more than positions and cannot be restarted from the data).",
+        + mpm_start,
         "- MSE: squared position error, mean over the non-kinematic particles and the axes, "
         "then over the first h predicted frames (`@h`; `@full`: all), then over trajectories.",
         f"- OT (W2^2, exact assignment up to 2048 points) and MMD^2 (Gaussian kernel, "
@@ -1662,7 +1818,7 @@ def _method_lines(context: dict[str, Any]) -> list[str]:
             else ""
         )
         + ". Baselines: the numpy extrapolation.",
-        "- A value of 0 is exact (the deterministic simulator reproducing its own data); "
+        "- A value of 0 is exact (e.g. the deterministic simulator reproducing its own data); "
         "`inf` means the rollout diverged before the end of that horizon; `n/a`: not computed "
         "(see status). A diverged row's status (and table.csv's diverged_at_step) gives the "
         f"rollout step it diverged at (step k predicts frame {h} + k); the figures mark its "
