@@ -3,6 +3,11 @@
 A step_*.pt holds everything an exact resume needs (RESUME_KEYS); best.pt only what a rollout
 needs (WEIGHTS_KEYS). This module writes, verifies, finds and loads them; the training loop
 (gns.train) decides what goes into them.
+
+A model folder holds one model.pt (WEIGHTS_KEYS, written by `export_model`) beside its card.
+The package ships trained ones in gns/models/NAME (SHIPPED_MODELS), loadable by name:
+
+    gns.load_simulator("sand2d-taichi")
 """
 
 from __future__ import annotations
@@ -28,13 +33,18 @@ __all__ = [
     "READABLE_FORMATS",
     "RESUME_KEYS",
     "WEIGHTS_KEYS",
+    "MODEL_FILE",
+    "SHIPPED_MODELS",
     "choose_checkpoint",
+    "export_model",
     "latest_checkpoint",
     "load_checkpoint",
     "load_simulator",
+    "model_location",
     "remove_stale_temporaries",
     "resume_checkpoint",
     "save_checkpoint",
+    "shipped_models",
     "simulator_from_checkpoint",
     "statistics_dict",
 ]
@@ -48,6 +58,9 @@ READABLE_FORMATS = ("gns-checkpoint-1", CHECKPOINT_FORMAT)
 # What load_simulator needs (best.pt holds only these), and what an exact resume needs too.
 WEIGHTS_KEYS = ("format", "step", "config", "scene", "statistics", "model")
 RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "sampler", "noise_generator")
+# The trained models that come with the package, one folder each, and a model folder's weights.
+SHIPPED_MODELS = Path(__file__).parent / "models"
+MODEL_FILE = "model.pt"
 
 
 def statistics_dict(metadata: Any) -> dict[str, list[float] | None]:
@@ -180,15 +193,44 @@ def remove_stale_temporaries(run_dir: Path) -> None:
                 tmp.unlink(missing_ok=True)
 
 
-def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
-    """The checkpoint file meant by `path`: the file itself, or in a run folder "latest" (the
-    highest step), "best" (the best validation, see gns.train.better_validation) or "auto"
-    (best when the run has one, otherwise latest)."""
-    path = Path(path)
-    if not path.is_dir():
-        if which != "auto":
-            raise ValueError(f"checkpoint {which!r} picks from a run folder, but {path} is a file")
+def shipped_models() -> list[str]:
+    """The names of the models that come with the package (SHIPPED_MODELS)."""
+    if not SHIPPED_MODELS.is_dir():
+        return []
+    return sorted(p.name for p in SHIPPED_MODELS.iterdir() if (p / MODEL_FILE).is_file())
+
+
+def is_model_folder(path: Path) -> bool:
+    """A folder with one exported model (model.pt), not a run folder (checkpoints/)."""
+    return (path / MODEL_FILE).is_file() and not (path / "checkpoints").is_dir()
+
+
+def model_location(text: str | os.PathLike[str]) -> Path:
+    """The checkpoint file, run folder or model folder `text` names, or else the shipped model
+    of that name."""
+    path = Path(text)
+    if path.exists():
         return path
+    if str(text) in shipped_models():
+        return SHIPPED_MODELS / str(text)
+    shipped = ", ".join(shipped_models()) or "none"
+    raise ValueError(
+        f"no such file or folder: {text}, nor a shipped model of that name (shipped: {shipped})"
+    )
+
+
+def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
+    """The checkpoint file meant by `path`: the file itself, a model folder's model.pt, or in a
+    run folder "latest" (the highest step), "best" (the best validation, see
+    gns.train.better_validation) or "auto" (best when the run has one, otherwise latest)."""
+    path = Path(path)
+    if not path.is_dir() or is_model_folder(path):
+        if which != "auto":
+            kind = "model folder" if path.is_dir() else "file"
+            raise ValueError(
+                f"checkpoint {which!r} picks from a run folder, but {path} is a {kind}"
+            )
+        return path / MODEL_FILE if path.is_dir() else path
     if which not in ("auto", "best", "latest"):
         raise ValueError(f"checkpoint must be 'auto', 'best' or 'latest', got {which!r}")
     best = path / "checkpoints" / "best.pt"
@@ -205,8 +247,58 @@ def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path
 def load_simulator(
     path: str | os.PathLike[str], device: str | torch.device = "cpu", checkpoint: str = "auto"
 ) -> LearnedSimulator:
-    """The trained simulator of a checkpoint file or of a run folder (see choose_checkpoint)."""
-    return simulator_from_checkpoint(load_checkpoint(choose_checkpoint(path, checkpoint)), device)
+    """The trained simulator of a checkpoint file, a run folder (see choose_checkpoint), a model
+    folder or a shipped model's name (see model_location)."""
+    chosen = choose_checkpoint(model_location(path), checkpoint)
+    return simulator_from_checkpoint(load_checkpoint(chosen), device)
+
+
+def export_model(
+    run: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    checkpoint: str = "auto",
+    average: int = 1,
+) -> dict[str, Any]:
+    """Write the weights a rollout needs to out/model.pt (out is created; an existing model.pt
+    is replaced atomically) and return the state written.
+
+    average: 1 exports the checkpoint `checkpoint` of `run` (see choose_checkpoint); N > 1
+    averages the parameters of the run's last N step_*.pt (equal weights), which evens out the
+    swings between neighbouring checkpoints; buffers (the normalisation statistics, the scene's
+    constants) are the newest checkpoint's. The state records the steps averaged."""
+    if isinstance(average, bool) or not isinstance(average, int) or average < 1:
+        raise ValueError(f"average must be an integer >= 1, got {average!r}")
+    run = Path(run)
+    if average == 1:
+        state = load_checkpoint(choose_checkpoint(run, checkpoint))
+        sources = [state]
+    else:
+        if checkpoint != "auto":
+            raise ValueError(f"average={average} takes the last checkpoints; drop {checkpoint!r}")
+        found = sorted((run / "checkpoints").glob("step_*.pt")) if run.is_dir() else []
+        if len(found) < average:
+            raise ValueError(
+                f"{run}: average={average} needs {average} step_*.pt checkpoints, "
+                f"found {len(found)}"
+            )
+        sources = [load_checkpoint(path) for path in found[-average:]]
+        state = sources[-1]
+    exported = {key: state[key] for key in WEIGHTS_KEYS}
+    if average > 1:
+        # Which entries are parameters: those of the model the checkpoint builds.
+        parameters = {name for name, _ in simulator_from_checkpoint(state).named_parameters()}
+        model = dict(state["model"])
+        for name in parameters:
+            model[name] = torch.stack([s["model"][name] for s in sources]).mean(dim=0)
+        exported["model"] = model
+        exported["averaged_steps"] = [int(s["step"]) for s in sources]
+        for s in sources[:-1]:
+            if s["config"] != state["config"] or s["scene"] != state["scene"]:
+                raise ValueError(f"{run}: the last {average} checkpoints are of different models")
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(folder / MODEL_FILE, exported)
+    return exported
 
 
 def simulator_from_checkpoint(

@@ -84,6 +84,17 @@ def existing_path(text: str) -> Path:
     return path
 
 
+def model_path(text: str) -> Path:
+    """The argparse type of --run: a run folder, checkpoint file or model folder that exists,
+    or the name of a model shipped with gns (e.g. sand2d-taichi)."""
+    from gns.checkpoints import model_location
+
+    try:
+        return model_location(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def existing_file(text: str) -> Path:
     """The argparse type of a file that exists."""
     path = Path(text)
@@ -131,6 +142,9 @@ def device_name(text: str) -> str:
     return text
 
 
+RUN_HELP = "run folder, checkpoint file, model folder or shipped model name (e.g. sand2d-taichi)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gns", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -174,9 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--frame-stride k` keeps; the files record frame_stride and dataset_dt), and data "
         "whose frame spacing does not divide its step is refused.",
     )
-    roll.add_argument(
-        "--run", type=existing_path, required=True, help="run folder or checkpoint file"
-    )
+    roll.add_argument("--run", type=model_path, required=True, help=RUN_HELP)
     roll.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     roll.add_argument("--split", default="test")
     roll.add_argument("--out", type=Path, help="default: RUN/rollouts/SPLIT")
@@ -223,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
         "take every k-th frame of data whose frames are k times finer than the model's step, "
         "as `gns rollout` does. Writes RUN/eval_SPLIT.json.",
     )
-    ev.add_argument("--run", type=existing_path, required=True, help="run folder")
+    ev.add_argument("--run", type=model_path, required=True, help=RUN_HELP)
     ev.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     ev.add_argument("--split", default="test")
     ev.add_argument("--rollouts", type=existing_dir, help="default: RUN/rollouts/SPLIT")
@@ -279,7 +291,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="rollout error against run time per frame: GNS, the reference simulator, baselines",
         description="Rolls out each checkpoint on the split (timed; GNS and CConv checkpoints "
         "alike, one row each, named by their model), re-runs the reference MPM "
-        "simulator at native and cheaper settings when the dataset was made by `gns generate`, "
+        "simulator at native and cheaper settings when the dataset was made by `gns generate` "
+        "or is a manifest folder (sand2d-taichi's layout; re-run from the data's frame 0), "
         "scores them and the constant-velocity and static baselines (MSE, optimal transport, "
         "MMD at several horizons; where the sand stops and how high it piles in the last "
         "frame over the ground truth's: runout ratio, the 99th minus the 1st percentile of x; "
@@ -290,9 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
         "between: every k-th frame of data whose frames are k times finer (as `gns rollout` "
         "takes them), and its time is per such frame.",
     )
-    rep.add_argument(
-        "--run", type=existing_path, required=True, help="run folder or checkpoint file"
-    )
+    rep.add_argument("--run", type=model_path, required=True, help=RUN_HELP)
     rep.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     rep.add_argument("--split", default="test")
     rep.add_argument(
@@ -392,6 +403,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_runtime_options(demo)
     demo.set_defaults(handler=run_demo)
+    export = sub.add_parser(
+        "export",
+        help="write a run's model (weights only, a few MB) to a model folder",
+        description="Writes OUT/model.pt: the weights, scene and statistics a rollout needs, "
+        "without the optimizer state. `gns rollout --run OUT` and gns.load_simulator(OUT) "
+        "read it; outputs of commands given a model folder go to a folder of its name in the "
+        "working directory. --average N averages the parameters of the run's last N "
+        "checkpoints instead of taking one.",
+    )
+    export.add_argument("--run", type=existing_path, required=True, help="run folder or file")
+    add_checkpoint_option(export)
+    export.add_argument("--average", type=positive_int, default=1, help="default 1 (no average)")
+    export.add_argument("--out", type=Path, required=True, help="model folder")
+    export.set_defaults(handler=run_export)
     # Problems found after parsing are reported through their command's parser (see main).
     for command in sub.choices.values():
         command.set_defaults(parser=command)
@@ -448,8 +473,28 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_folder(run: Path) -> Path:
-    """Where outputs of `--run RUN` go: RUN itself, or the folder of a checkpoint file."""
+    """Where outputs of `--run RUN` go: RUN itself, the folder of a checkpoint file, or for a
+    model folder (a shipped model's among them) a folder of its name in the working directory:
+    a model's card and weights stay as they were shipped."""
+    from gns.checkpoints import is_model_folder
+
+    if run.is_dir() and is_model_folder(run):
+        return Path.cwd() / run.name
     return run if run.is_dir() else run.parent
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from gns.checkpoints import MODEL_FILE, export_model
+
+    state = export_model(args.run, args.out, args.checkpoint, args.average)
+    steps = state.get("averaged_steps") or [state["step"]]
+    what = (
+        f"the average of steps {', '.join(map(str, steps))}"
+        if len(steps) > 1
+        else f"step {steps[0]}"
+    )
+    print(f"wrote {args.out / MODEL_FILE}: {what} of {args.run}")
+    return 0
 
 
 def run_rollout(args: argparse.Namespace) -> int:
