@@ -109,6 +109,13 @@ def test_a_model_folder_rolls_out_and_writes_beside_the_working_directory(
         "rollout_test_1.npz",
     ]
     assert (work / "mine" / "eval_test.json").is_file()
+    # Rollouts kept elsewhere: the eval still lands in ./mine, made if need be.
+    (work / "mine" / "rollouts").rename(tmp_path / "kept")
+    (work / "mine" / "eval_test.json").unlink()
+    (work / "mine").rmdir()
+    kept = ["--rollouts", str(tmp_path / "kept" / "test"), "--one-step-windows", "0"]
+    assert main(["eval", *argv, *kept]) == 0
+    assert (work / "mine" / "eval_test.json").is_file()
 
 
 def test_written_files_get_the_usual_permissions(run, tmp_path):

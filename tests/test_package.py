@@ -61,3 +61,18 @@ def test_every_module_of_the_package_is_an_attribute():
     on_disk |= {p.parent.name for p in package.glob("*/__init__.py")}
     assert gns._SUBMODULES == on_disk - {"cli"}
     assert {"data", "metrics", "mpm", "rollout"} <= gns._SUBMODULES <= set(dir(gns))
+
+
+def test_the_version_has_one_source():
+    # Cargo.toml holds it; pyproject.toml takes it from there (dynamic) and gns from the
+    # installed metadata, so the three can never disagree.
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    cargo = tomllib.loads((root / "Cargo.toml").read_text())["package"]["version"]
+    pyproject = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    assert "version" not in pyproject and "version" in pyproject["dynamic"]
+    assert gns.__version__ == cargo

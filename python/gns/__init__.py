@@ -7,6 +7,7 @@ imported on first touch: `import gns; gns.data.open_dataset(...)` works without 
 `gns.data` first, and only the modules a user touches are loaded (gns.data needs no torch).
 """
 
+import importlib.metadata
 import pkgutil
 from typing import Any
 
@@ -61,7 +62,8 @@ __all__ = [
     "radius_graph",
     "wall_features",
 ]
-__version__ = "0.1.0"
+# Cargo.toml's version, through the installed package's metadata (maturin copies it there).
+__version__ = importlib.metadata.version("gns")
 
 
 def __getattr__(name: str) -> Any:

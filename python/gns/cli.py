@@ -648,6 +648,8 @@ def run_eval(args: argparse.Namespace) -> int:
         report["rest"] = rest_summary(rest, args.rest_steps)
     report["split"], report["rollouts"] = args.split, [str(f.absolute()) for f in files]
     written = run_folder(args.run) / f"eval_{args.split}.json"
+    # A model folder's outputs go to ./NAME, which --rollouts from elsewhere did not make.
+    written.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(written, report)
     print(f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box: worst)")
     if report.get("frame_stride", 1) > 1:
