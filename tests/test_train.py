@@ -429,3 +429,62 @@ def test_a_diverging_validation_rollout_is_the_worst_figure_not_a_crash(tmp_path
     # never preferred to one that stayed finite.
     assert math.isfinite(figures["truth_outside_box"])
     assert better_validation(figures, {"value": 1.0, "in_box": False}, 0.1) is None
+
+
+def test_validation_on_another_dataset_at_finer_frames(tmp_path):
+    """--valid-data: a model trained on every 3rd frame validates on the native data's valid
+    split at its own step. The oracle: validating on the converted folder's valid split, the
+    same frames, gives the same figures."""
+    from gns.data import convert
+
+    native = make_dataset(tmp_path / "native", frames=27)
+    convert(native, tmp_path / "converted", "h5", frame_stride=3)
+    settings = config(
+        4,
+        validate_every=2,
+        validation_windows=4,
+        validation_rollouts=1,
+        validation_rollout_steps=2,
+        checkpoint_every=2,
+    )
+    train(tmp_path / "converted", tmp_path / "a", settings, progress=False, valid_data=native)
+    train(tmp_path / "converted", tmp_path / "b", settings, progress=False)
+    ours, theirs = read_csv(tmp_path / "a" / "valid.csv"), read_csv(tmp_path / "b" / "valid.csv")
+    assert len(ours) == 2 and ours == theirs
+    # A resume validates on the recorded data, and refuses another.
+    train(tmp_path / "converted", tmp_path / "a", None, steps=6, resume=True, progress=False)
+    assert [row["step"] for row in read_csv(tmp_path / "a" / "valid.csv")] == ["2", "4", "6"]
+    with pytest.raises(ValueError, match="validated on .*native, not on .*converted"):
+        train(
+            tmp_path / "converted",
+            tmp_path / "a",
+            None,
+            steps=8,
+            resume=True,
+            progress=False,
+            valid_data=tmp_path / "converted",
+        )
+
+
+def test_validation_data_of_another_kind_is_refused_before_training(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    from gns.data import write_dataset
+
+    other = tmp_path / "other"
+    positions = np.random.default_rng(0).uniform(0.2, 0.8, (12, 5, 3))
+    split = [Trajectory(positions, np.full(5, 5))]
+    write_dataset(
+        other,
+        {"train": split, "valid": split},
+        dt=0.0025,
+        bounds=[[0.1, 0.9]] * 3,
+        connectivity_radius=0.015,
+        layout="h5",
+    )
+    settings = config(2, validate_every=1)
+    with pytest.raises(
+        ValueError, match="dimension 3 with 0 global features, but the model is 2D with 1"
+    ):
+        train(data, tmp_path / "run", settings, progress=False, valid_data=other)
+    with pytest.raises(ValueError):  # no valid split at all
+        train(data, tmp_path / "run2", settings, progress=False, valid_data=tmp_path / "data2")

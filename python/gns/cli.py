@@ -163,6 +163,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--data", type=existing_path, required=True, help="dataset folder")
     train.add_argument("--out", type=Path, required=True, help="run folder")
     train.add_argument(
+        "--valid-data",
+        type=existing_path,
+        help="validate on this dataset's valid split (default: --data's); its frames may be a "
+        "whole factor finer than --data's",
+    )
+    train.add_argument(
         "--config", type=existing_file, help="TOML settings (or a run's config.json)"
     )
     train.add_argument("--steps", type=positive_int, help="override train.steps")
@@ -468,6 +474,7 @@ def run_train(args: argparse.Namespace) -> int:
         device=args.device,
         progress=not args.quiet,
         time_limit=None if args.time_limit is None else 60.0 * args.time_limit,
+        valid_data=args.valid_data,
     )
     return 0
 

@@ -52,7 +52,7 @@ from gns.checkpoints import (
     statistics_dict,
 )
 from gns.config import Config, TrainConfig, from_dict, to_dict
-from gns.data import open_dataset
+from gns.data import at_frame_stride, open_dataset
 from gns.data.atomic import atomic_file
 from gns.data.windows import Batch, WindowSampler
 from gns.device import resolve_device
@@ -384,15 +384,34 @@ def better_validation(
     return None
 
 
-def _validation_trajectories(path: str | os.PathLike[str], config: TrainConfig) -> list[Any]:
-    """The valid split's trajectories (none without validation or without a valid split)."""
+def _validation_trajectories(
+    path: str | os.PathLike[str],
+    config: TrainConfig,
+    simulator: LearnedSimulator,
+    required: bool = False,
+) -> list[Any]:
+    """The valid split's trajectories at the frames the model steps between (every k-th frame
+    of data whose frames are k times finer). None without validation, or without a valid split
+    unless `required` (a dataset named for validation must have one)."""
     if not config.validate_every:
         return []
     try:
         dataset = open_dataset(path, "valid")
     except ValueError:
+        if required:
+            raise
         return []
-    return list(dataset)
+    # Checked now, not at the first validation a thousand steps in.
+    scene, trajectories = simulator.scene, list(dataset)
+    widths = {0 if t.step_context is None else t.step_context.shape[1] for t in trajectories}
+    if dataset.metadata.dim != scene.dim or (scene.context_size and widths != {scene.context_size}):
+        raise ValueError(
+            f"{path}: validation data of dimension {dataset.metadata.dim} with "
+            f"{'/'.join(map(str, sorted(widths)))} global features, but the model is "
+            f"{scene.dim}D with {scene.context_size}"
+        )
+    stride = simulator.frame_stride_for(dataset.metadata)
+    return [at_frame_stride(trajectory, stride) for trajectory in trajectories]
 
 
 # ---------------------------------------------------------------------------------- the loop
@@ -460,9 +479,15 @@ def train(
     device: str | torch.device = "auto",
     progress: bool = True,
     time_limit: float | None = None,
+    valid_data: str | os.PathLike[str] | None = None,
 ) -> LearnedSimulator:
     """Train a GNS (or CConv, by config.model.kind) on the dataset at `data` (train split;
     validation on valid) into run_dir.
+
+    valid_data: validate on this dataset's valid split instead (e.g. train on `gns generate`
+    data, validate on the real data it imitates); its frames may be a whole factor finer than
+    the model's step (every k-th is taken). The checkpoints record it: a resume uses it again
+    and refuses another.
 
     resume=True continues from the newest checkpoint in run_dir with its saved settings (the
     `config` argument must then be None or differ only in train.steps, to train for longer):
@@ -507,6 +532,14 @@ def train(
                 saved, train=dataclasses.replace(saved.train, steps=config.train.steps)
             )
         config = saved
+        recorded = checkpoint.get("valid_data")
+        if valid_data is None:
+            valid_data = recorded
+        elif recorded is None or Path(valid_data).absolute() != Path(recorded):
+            raise ValueError(
+                f"--resume: the run validated on {recorded or 'its own data'}, not on "
+                f"{valid_data}; resume without --valid-data or start a new run folder"
+            )
     elif found is not None:
         raise ValueError(f"{run_dir} already holds checkpoints; pass --resume or another --out")
     config = config or Config()
@@ -576,7 +609,11 @@ def train(
         with atomic_file(run_dir / "config.json") as tmp:
             tmp.write_text(json.dumps(to_dict(config), indent=1) + "\n")
     log = RunLog(run_dir, start if checkpoint is not None else None) if leader else None
-    valid_trajectories = _validation_trajectories(data, tc) if leader else []
+    valid_trajectories = (
+        _validation_trajectories(valid_data or data, tc, simulator, required=bool(valid_data))
+        if leader
+        else []
+    )
     meter = Progress(tc.steps, start, enabled=progress and leader, time_limit=time_limit)
 
     def out_of_time() -> bool:
@@ -601,6 +638,7 @@ def train(
             "statistics": statistics,
             "model": simulator.state_dict(),
             "best": best,
+            "valid_data": None if valid_data is None else str(Path(valid_data).absolute()),
         }
 
     def checkpoint_state(step: int) -> dict[str, Any]:
