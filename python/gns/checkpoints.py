@@ -209,13 +209,17 @@ def model_location(text: str | os.PathLike[str]) -> Path:
     """The checkpoint file, run folder or model folder `text` names, or else the shipped model
     of that name."""
     path = Path(text)
-    if path.exists():
+    shipped = str(text) in shipped_models()
+    # A shipped model's outputs go to ./NAME (see gns.cli.run_folder): that folder, which holds
+    # no model, must not hide the model of the same name.
+    holds_model = path.is_file() or is_model_folder(path) or (path / "checkpoints").is_dir()
+    if path.exists() and (holds_model or not shipped):
         return path
-    if str(text) in shipped_models():
+    if shipped:
         return SHIPPED_MODELS / str(text)
-    shipped = ", ".join(shipped_models()) or "none"
+    names = ", ".join(shipped_models()) or "none"
     raise ValueError(
-        f"no such file or folder: {text}, nor a shipped model of that name (shipped: {shipped})"
+        f"no such file or folder: {text}, nor a shipped model of that name (shipped: {names})"
     )
 
 

@@ -504,10 +504,20 @@ def _device_label(device: Any, ran: Sequence[dict[str, Any]]) -> str:
     return ", ".join([where, *precisions])
 
 
+def _trained_for(state: Mapping[str, Any]) -> str | None:
+    """How a checkpoint was trained, for its row: "step 4000", or for an export that averages
+    checkpoints (gns export --average) "mean of steps 6000-10000"."""
+    averaged = state.get("averaged_steps")
+    if averaged:
+        return f"mean of steps {averaged[0]}-{averaged[-1]}"
+    step = state.get("step")
+    return None if step is None else f"step {step}"
+
+
 def _learned_row(
     checkpoint: Path,
     simulator: Any,
-    step: int | None,
+    trained_for: str | None,
     trajectories: list[Any],
     indices: list[int],
     scoring: _Scoring,
@@ -518,7 +528,7 @@ def _learned_row(
     rest_steps: int,
     say: Callable[[str], None],
 ) -> tuple[Row, list[np.ndarray]]:
-    """Roll the simulator of the file `checkpoint` (trained for `step` steps) out on every
+    """Roll the simulator of the file `checkpoint` (trained_for: e.g. "step 4000") out on every
     trajectory (timed), score the rollouts, save them with their deposit (Rollout.metrics) and
     `recorded` (what they ran on: dataset, split, frame stride) in their metadata, and with
     rest_steps > 0 run the rest test on every trajectory. Returns the row and the predictions
@@ -526,7 +536,7 @@ def _learned_row(
     from gns.evaluate import rest_summary, rest_test
     from gns.rollout import RolloutDiverged, rollout, save_rollout
 
-    setting = f"{checkpoint.name} (step {step})" if step is not None else checkpoint.name
+    setting = f"{checkpoint.name} ({trained_for})" if trained_for else checkpoint.name
     say(f"rolling out {setting} on {len(trajectories)} trajectories")
     # One short untimed rollout first: the first call pays for lazy initialisation (allocator,
     # kernels), which is not the cost of simulating a frame.
@@ -1096,7 +1106,7 @@ def report(
             row, predicted = _learned_row(
                 path,
                 simulator,
-                state.get("step"),
+                _trained_for(state),
                 items,
                 indices,
                 scoring,
