@@ -512,6 +512,7 @@ def run_rollout(args: argparse.Namespace) -> int:
         RolloutDiverged,
         frame_stride_metadata,
         rollout,
+        rollout_path,
         save_deepmind_pickle,
         save_rollout,
     )
@@ -549,7 +550,7 @@ def run_rollout(args: argparse.Namespace) -> int:
     }
     diverged = 0
     for i in indices:
-        stem = out / f"rollout_{args.split}_{i}"
+        stem = rollout_path(out, args.split, i, suffix="")
         note = None
         try:
             result = rollout(
@@ -605,13 +606,11 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.data.atomic import write_json_atomic
     from gns.device import resolve_device
     from gns.evaluate import evaluate_rollouts, one_step_errors, rest_summary, rest_test
-    from gns.rollout import load_rollout
+    from gns.rollout import load_rollout, rollout_files
 
     set_threads(args.threads)
     folder = args.rollouts or run_folder(args.run) / "rollouts" / args.split
-    files = sorted(
-        folder.glob(f"rollout_{args.split}_*.npz"), key=lambda p: int(p.stem.split("_")[-1])
-    )
+    files = rollout_files(folder, args.split)
     if not files:
         raise ValueError(f"no rollouts in {folder}; run `gns rollout --run {args.run} ...` first")
     rollouts = [load_rollout(f) for f in files]

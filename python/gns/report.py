@@ -534,7 +534,7 @@ def _learned_row(
     rest_steps > 0 run the rest test on every trajectory. Returns the row and the predictions
     (S, N, D) per trajectory, NaN after a divergence."""
     from gns.evaluate import rest_summary, rest_test
-    from gns.rollout import RolloutDiverged, rollout, save_rollout
+    from gns.rollout import RolloutDiverged, rollout, rollout_path, save_rollout
 
     setting = f"{checkpoint.name} ({trained_for})" if trained_for else checkpoint.name
     say(f"rolling out {setting} on {len(trajectories)} trajectories")
@@ -559,7 +559,7 @@ def _learned_row(
         # Its deposit travels with the saved rollout; the fronts of the frames it has.
         result.metrics.update({k: scores[-1][k] for k in DEPOSIT_FIGURES if k in scores[-1]})
         result.metrics.update({k: scores[-1][k][: result.num_steps] for k in DEPOSIT_CURVES})
-        save_rollout(rollouts_dir / f"rollout_{split}_{index}.npz", result)
+        save_rollout(rollout_path(rollouts_dir, split, index), result)
         predictions.append(predicted)
         seconds.append(np.stack([result.timings[part] for part in TIMING_PARTS]))
     timings = np.concatenate(seconds, axis=1)  # (parts, all steps of all trajectories)
@@ -1438,6 +1438,7 @@ def _write_media(
     (`label`: the row's, e.g. "GNS best.pt (step 2000)"), both up to the frame where the
     prediction diverged, if it did; in the box `bounds`, with frames `dt` seconds apart."""
     from gns.plots import animation, diverged_frame
+    from gns.rollout import rollout_path
     from gns.vtk import write_series
 
     files: dict[str, Path] = {}
@@ -1449,8 +1450,8 @@ def _write_media(
         return files
     if animation_frames:
         say("animation")
-        gif = out / f"rollout_{split}_{index}.gif"
-        mp4 = out / f"rollout_{split}_{index}.mp4"
+        gif = rollout_path(out, split, index, suffix=".gif")
+        mp4 = gif.with_suffix(".mp4")
         projection = " (x-y projection)" if trajectory.dim == 3 else ""
         why_not = animation(
             truth,

@@ -34,6 +34,7 @@ import weakref
 import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -56,6 +57,8 @@ __all__ = [
     "frame_stride_metadata",
     "load_rollout",
     "rollout",
+    "rollout_files",
+    "rollout_path",
     "save_deepmind_pickle",
     "save_rollout",
 ]
@@ -560,6 +563,20 @@ def _arrays(r: Rollout) -> dict[str, np.ndarray]:
                 raise ValueError(f"metric {name!r} is an object array; it would need pickle")
             arrays[_METRIC + name] = value
     return arrays
+
+
+def rollout_path(
+    folder: str | os.PathLike[str], split: str, index: int, suffix: str = ".npz"
+) -> Path:
+    """Where trajectory `index` of `split` is kept in a folder of rollouts (and its .pkl, .gif):
+    folder/rollout_{split}_{index}{suffix}, the name every command reads and writes."""
+    return Path(folder) / f"rollout_{split}_{index}{suffix}"
+
+
+def rollout_files(folder: str | os.PathLike[str], split: str) -> list[Path]:
+    """The rollout files (.npz) of `split` in `folder`, by trajectory index."""
+    found = Path(folder).glob(f"rollout_{split}_*.npz")
+    return sorted(found, key=lambda p: int(p.stem.rsplit("_", 1)[-1]))
 
 
 def save_rollout(path: str | os.PathLike[str], rollout: Rollout) -> None:
