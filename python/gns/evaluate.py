@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from gns.batches import batch_tensors
 from gns.data.trajectory import Trajectory
 from gns.data.windows import collate, trajectory_windows, window_keys
 from gns.metrics import (
@@ -68,8 +69,6 @@ def one_step_errors(
     of the constant-velocity baseline and of the static one (the last input frame again) over
     the windows of `trajectories`: all of them, or `max_windows` spread evenly over the
     split."""
-    from gns.train import batch_tensors
-
     history = simulator.config.model.velocity_history + 1
     pairs = window_keys(trajectories, history)
     if not pairs:

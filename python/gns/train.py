@@ -42,6 +42,9 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 from gns.augment import check_mirror_axes, mirror_batch
+
+# Re-exported: gns.train.batch_tensors is where callers have always found it.
+from gns.batches import batch_tensors
 from gns.checkpoints import (
     CHECKPOINT_FORMAT,
     latest_checkpoint,
@@ -71,23 +74,6 @@ SPIKES_SHOWN = 3
 
 
 # ---------------------------------------------------------------------------------- one step
-
-
-def batch_tensors(batch: Batch, device: torch.device) -> dict[str, Tensor | None]:
-    """A Batch (time-major numpy) as the simulator's particle-major tensors on `device`."""
-
-    def tensor(x: np.ndarray | None) -> Tensor | None:
-        return None if x is None else torch.from_numpy(np.ascontiguousarray(x)).to(device)
-
-    positions = batch.positions.transpose(1, 0, 2)  # (N, C + 2, D)
-    return {
-        "position_sequence": tensor(positions[:, :-1]),
-        "next_position": tensor(positions[:, -1]),
-        "particle_type": tensor(batch.particle_type),
-        "n_node": tensor(batch.n_node),
-        "context": tensor(batch.step_context),
-        "material_property": tensor(batch.material_property),
-    }
 
 
 def _split_targets(tensors: dict[str, Tensor | None], history: int) -> tuple[Tensor, Tensor]:
