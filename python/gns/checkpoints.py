@@ -289,6 +289,8 @@ def export_model(
         state = sources[-1]
     exported = {key: state[key] for key in WEIGHTS_KEYS}
     if average > 1:
+        if any(s["config"] != state["config"] or s["scene"] != state["scene"] for s in sources):
+            raise ValueError(f"{run}: the last {average} checkpoints are of different models")
         # Which entries are parameters: those of the model the checkpoint builds.
         parameters = {name for name, _ in simulator_from_checkpoint(state).named_parameters()}
         model = dict(state["model"])
@@ -296,9 +298,6 @@ def export_model(
             model[name] = torch.stack([s["model"][name] for s in sources]).mean(dim=0)
         exported["model"] = model
         exported["averaged_steps"] = [int(s["step"]) for s in sources]
-        for s in sources[:-1]:
-            if s["config"] != state["config"] or s["scene"] != state["scene"]:
-                raise ValueError(f"{run}: the last {average} checkpoints are of different models")
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     save_checkpoint(folder / MODEL_FILE, exported)
