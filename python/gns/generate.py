@@ -270,7 +270,7 @@ def sand_taichi(rng: np.random.Generator) -> tuple[MpmScene, int]:
     `continuous`), half at rest and half thrown, at sand2d-taichi's resolution (grid 64, 4
     particles a cell, spacing 1/128): training data for a model of that dataset."""
     angle = float(rng.uniform(20.0, 45.0))
-    # Half a lattice spacing inside the walls, as Taichi's blocks reach 0.101.
+    # 0.005 inside the walls: Taichi's blocks come as close as 0.101.
     lo, hi = WALLS[0][0] + MARGIN / 4, WALLS[0][1] - MARGIN / 4 - TAICHI_SIDE
     lower = rng.uniform(lo, hi, 2)
     thrown = rng.random() < 0.5
