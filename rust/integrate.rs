@@ -1,5 +1,7 @@
-//! The semi-implicit Euler update with which the model's accelerations advance the particles:
-//! v' = v + dt a, then x' = x + dt v' (the new velocity moves the particle, as in the paper).
+//! The paper's semi-implicit Euler update, v' = v + dt a, then x' = x + dt v' (the new velocity
+//! moves the particle), for callers with arrays (`gns.euler_step`). The learned model applies
+//! the same update in torch (LearnedSimulator.decoder_postprocess), where gradients flow
+//! through it and the tensors stay on the model's device; this is not on its path.
 
 use crate::{check_positive, first_non_finite, Error, Real, Result};
 
