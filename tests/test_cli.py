@@ -17,8 +17,7 @@ from gns import checkpoints, generate
 from gns.cli import main
 from gns.data import DatasetError
 from gns.rollout import load_rollout, save_rollout
-from gns.train import train
-from test_train import config, make_dataset
+from test_train import make_dataset, trained_run
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -28,16 +27,7 @@ FRAMES = 14  # the model reads 6: 8 steps to roll out
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> tuple[Path, Path]:
     """(run folder, dataset) of a GNS trained for 2 steps; the test split has 2 trajectories."""
-    root = tmp_path_factory.mktemp("trained")
-    data = make_dataset(root / "data", trajectories=2, frames=FRAMES)
-    (data / "valid.h5").rename(data / "test.h5")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        train(data, root / "run", config(2), progress=False)
-    finally:
-        torch.set_num_threads(threads)
-    return root / "run", data
+    return trained_run(tmp_path_factory.mktemp("trained"), 2, frames=FRAMES)
 
 
 @pytest.fixture

@@ -21,8 +21,7 @@ from gns.checkpoints import (
     shipped_models,
 )
 from gns.cli import main
-from gns.train import train
-from test_train import config, make_dataset
+from test_train import trained_run
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -30,16 +29,7 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 @pytest.fixture(scope="module")
 def run(tmp_path_factory) -> tuple[Path, Path]:
     """(run folder with step_3, step_6 and step_9 checkpoints, dataset with a test split)."""
-    root = tmp_path_factory.mktemp("models")
-    data = make_dataset(root / "data", trajectories=2, frames=14)
-    (data / "valid.h5").rename(data / "test.h5")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        train(data, root / "run", config(9), progress=False)
-    finally:
-        torch.set_num_threads(threads)
-    return root / "run", data
+    return trained_run(tmp_path_factory.mktemp("models"), 9, frames=14)
 
 
 def steps_of(run: Path) -> list[Path]:

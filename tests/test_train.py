@@ -79,6 +79,20 @@ def config(steps: int, **train: object) -> Config:
     return Config(model=TINY, train=TrainConfig(**settings))
 
 
+def trained_run(root: Path, steps: int, frames: int = 12) -> tuple[Path, Path]:
+    """(run folder, dataset) of a GNS trained for `steps` steps on one thread, on a dataset of
+    2 trajectories whose valid split is renamed test (what rollouts and evals read)."""
+    data = make_dataset(root / "data", trajectories=2, frames=frames)
+    (data / "valid.h5").rename(data / "test.h5")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        train(data, root / "run", config(steps), progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    return root / "run", data
+
+
 def parameters(simulator) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in simulator.state_dict().items()}
 
