@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from data_helpers import SAND as SAND2D
 from gns import generate as gen
 from gns import mpm
 from gns.cli import main
@@ -69,7 +69,6 @@ def assert_apart_inside_the_walls(boxes):
 
 # sand-taichi keeps sand2d-taichi's own resolution and layout (test below).
 SHARED_RESOLUTION = sorted(set(gen.PRESETS) - {"sand-taichi"})
-SAND2D = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
 
 
 @pytest.mark.parametrize("preset", SHARED_RESOLUTION)

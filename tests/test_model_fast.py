@@ -7,20 +7,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import gns
 import gns.model
 import numpy as np
 import pytest
 import torch
+from data_helpers import SAND
 from gns.config import Config, ModelConfig, NormalizationConfig
 from gns.data import open_dataset
 from gns.model import EncodeProcessDecode, native_bf16, resolve_precision
 from gns.rollout import rollout
 from gns.simulator import LearnedSimulator
 
-SAND = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
 TINY = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=3, precision="fp32")
 # name -> (config changes, graph sizes n_node, global input width)
 VARIANTS = {

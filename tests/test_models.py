@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from data_helpers import SAND as SAND2D
 from gns import checkpoints
 from gns.checkpoints import (
     MODEL_FILE,
@@ -141,9 +142,6 @@ def test_a_shipped_model_loads_by_name_and_has_its_card(name, tmp_path, monkeypa
     assert simulator.scene.dt is not None, "a shipped model knows its frame spacing"
     # Inference only: a few MB.
     assert (folder / MODEL_FILE).stat().st_size < 8e6
-
-
-SAND2D = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
 
 
 @pytest.mark.skipif(not (SAND2D / "manifest.json").is_file(), reason="../shared not present")

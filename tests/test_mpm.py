@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
+from data_helpers import SAND as SAND2D
 from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water, particles, simulate
 
-SAND2D = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
 G_FRAME = -9.81 * 0.0025**2  # free fall per frame^2
 
 

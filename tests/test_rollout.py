@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from data_helpers import SAND
 from gns.config import Config, ModelConfig, NormalizationConfig
 from gns.data import Metadata, Trajectory, open_dataset
 from gns.rollout import (
@@ -26,7 +27,6 @@ from gns.rollout import (
 )
 from gns.simulator import LearnedSimulator, Scene
 
-SAND = Path(__file__).resolve().parents[2] / "shared" / "data" / "sand2d-taichi"
 TINY = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=2)
 BOX = ((0.1, 0.9), (0.1, 0.9))
 C = TINY.velocity_history
