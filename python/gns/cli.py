@@ -174,6 +174,13 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--steps", type=positive_int, help="override train.steps")
     train.add_argument("--resume", action="store_true", help="continue the run in --out")
     train.add_argument(
+        "--init-from",
+        type=model_path,
+        metavar="MODEL",
+        help="fine-tune: start from this model's weights (" + RUN_HELP + "); --config may "
+        "change only [noise] and [train]",
+    )
+    train.add_argument(
         "--time-limit",
         type=positive_number("minutes"),
         metavar="MINUTES",
@@ -475,6 +482,7 @@ def run_train(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         time_limit=None if args.time_limit is None else 60.0 * args.time_limit,
         valid_data=args.valid_data,
+        init_from=args.init_from,
     )
     return 0
 

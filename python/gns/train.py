@@ -47,7 +47,10 @@ from gns.augment import check_mirror_axes, mirror_batch
 from gns.batches import batch_tensors
 from gns.checkpoints import (
     CHECKPOINT_FORMAT,
+    choose_checkpoint,
     latest_checkpoint,
+    load_checkpoint,
+    model_location,
     remove_stale_temporaries,
     resume_checkpoint,
     save_checkpoint,
@@ -455,6 +458,51 @@ def _non_finite_message(
     )
 
 
+def _fine_tuning_config(config: Config | None, model: Config, source: object) -> Config:
+    """config for fine-tuning the model whose config is `model` (None: the model's own): the
+    sections that shape the network and its inputs must be the model's."""
+    if config is None:
+        return model
+    differ = [
+        name
+        for name in ("model", "scene", "normalization")
+        if getattr(config, name) != getattr(model, name)
+    ]
+    if differ:
+        sections = ", ".join(f"[{name}]" for name in differ)
+        raise ValueError(
+            f"--init-from {source}: the config's {sections} differ from the model's; fine-tuning "
+            "may change only [noise] and [train] (omit --config to use the model's own)"
+        )
+    return config
+
+
+def _check_fine_tuning_scene(model: Scene, data: Scene, announce: bool) -> None:
+    """The data a model is fine-tuned on must be the scene it was trained for. The box may
+    differ (a dataset's metadata may give a nominal box, another the walls' true place): the
+    model keeps its own walls, as it does when it rolls out on that data, and says so."""
+    unknown = sorted(set(data.particle_types) - set(model.particle_types))
+    if unknown:
+        raise ValueError(
+            f"--init-from: the data has particle types {unknown} the model does not know "
+            f"(it knows {list(model.particle_types)})"
+        )
+    differ = [
+        f"{f.name} {getattr(data, f.name)!r} (the model's: {getattr(model, f.name)!r})"
+        for f in dataclasses.fields(Scene)
+        if f.name not in ("particle_types", "bounds")
+        and getattr(data, f.name) != getattr(model, f.name)
+    ]
+    if differ:
+        raise ValueError("--init-from: the data is not the model's scene: " + "; ".join(differ))
+    if announce and data.bounds != model.bounds:
+        print(
+            f"--init-from: the data's box is {data.bounds}; the model keeps its walls at "
+            f"{model.bounds}",
+            file=sys.stderr,
+        )
+
+
 def train(
     data: str | os.PathLike[str],
     run_dir: str | os.PathLike[str],
@@ -466,6 +514,7 @@ def train(
     progress: bool = True,
     time_limit: float | None = None,
     valid_data: str | os.PathLike[str] | None = None,
+    init_from: str | os.PathLike[str] | None = None,
 ) -> LearnedSimulator:
     """Train a GNS (or CConv, by config.model.kind) on the dataset at `data` (train split;
     validation on valid) into run_dir.
@@ -474,6 +523,14 @@ def train(
     data, validate on the real data it imitates); its frames may be a whole factor finer than
     the model's step (every k-th is taken). The checkpoints record it: a resume uses it again
     and refuses another.
+
+    init_from: fine-tune. Start from a trained model's weights and running statistics (a
+    checkpoint, run folder, model folder or shipped model's name, as gns.load_simulator takes)
+    instead of fresh ones; the optimizer, the learning-rate schedule and the step count start
+    anew. Its [model], [scene] and [normalization] settings must be config's (config None:
+    the model's own config), and the data must be the model's scene: the same dimension,
+    box, frame spacing and global input, with particle types it knows. The checkpoints record
+    where the weights came from.
 
     resume=True continues from the newest checkpoint in run_dir with its saved settings (the
     `config` argument must then be None or differ only in train.steps, to train for longer):
@@ -528,6 +585,15 @@ def train(
             )
     elif found is not None:
         raise ValueError(f"{run_dir} already holds checkpoints; pass --resume or another --out")
+    initial: dict[str, Any] | None = None
+    if init_from is not None:
+        if resume:
+            raise ValueError("--init-from starts a new run; --resume continues one: pass one")
+        initial = load_checkpoint(choose_checkpoint(model_location(init_from)))
+        config = _fine_tuning_config(config, from_dict(Config, initial["config"]), init_from)
+    elif checkpoint is not None:
+        initial = checkpoint
+        init_from = checkpoint.get("init_from")
     config = config or Config()
     if steps is not None:
         config = dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps))
@@ -535,18 +601,23 @@ def train(
 
     dataset = open_dataset(data, "train")
     history = config.model.velocity_history + 1
-    if checkpoint is not None:
-        simulator = simulator_from_checkpoint(checkpoint)
-        if simulator.scene.dt is None:
-            # A run begun before checkpoints recorded the frame spacing: the data it resumes
-            # on is the data it trains on, so its checkpoints from now on know their spacing.
-            simulator.scene = dataclasses.replace(simulator.scene, dt=dataset.metadata.dt)
-    else:
+    if initial is None:
         scene = Scene.from_dataset(dataset, config.scene)
         torch.manual_seed(tc.seed)  # the initial weights (the same on every rank)
         simulator = LearnedSimulator(scene, config, statistics=dataset.metadata)
+        statistics = statistics_dict(dataset.metadata)
+    else:  # resumed or fine-tuned: the weights and statistics (metadata or running) carry on
+        simulator = simulator_from_checkpoint(initial)
+        statistics = initial["statistics"]
+        if checkpoint is None:
+            _check_fine_tuning_scene(
+                simulator.scene, Scene.from_dataset(dataset, config.scene), announce=leader
+            )
+        elif simulator.scene.dt is None:
+            # A run begun before checkpoints recorded the frame spacing: the data it resumes
+            # on is the data it trains on, so its checkpoints from now on know their spacing.
+            simulator.scene = dataclasses.replace(simulator.scene, dt=dataset.metadata.dt)
     simulator.to(device).train()
-    statistics = statistics_dict(dataset.metadata)
     check_mirror_axes(
         tc.mirror_axes, simulator.scene.dim, dataset.metadata.acc_mean, dataset.metadata.acc_std
     )
@@ -625,6 +696,7 @@ def train(
             "model": simulator.state_dict(),
             "best": best,
             "valid_data": None if valid_data is None else str(Path(valid_data).absolute()),
+            "init_from": None if init_from is None else str(init_from),
         }
 
     def checkpoint_state(step: int) -> dict[str, Any]:

@@ -1,0 +1,88 @@
+"""Fine-tuning (`gns train --init-from MODEL`): a new run that starts from a trained model's
+weights and running statistics, with only [noise] and [train] changeable."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+from gns.checkpoints import latest_checkpoint, load_checkpoint, load_simulator
+from gns.cli import main
+from gns.config import ModelConfig
+from gns.train import train
+from test_train import config, make_dataset, parameters, trained_run
+
+
+def weights(simulator) -> dict[str, torch.Tensor]:
+    """The learned parameters (not the normalisers' running sums)."""
+    return {k: v.detach().clone() for k, v in simulator.named_parameters()}
+
+
+def largest_difference(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> float:
+    assert a.keys() == b.keys()
+    return max(float((a[k] - b[k]).abs().max()) for k in a)
+
+
+def test_fine_tuning_starts_from_the_model_and_adds_to_its_statistics(tmp_path):
+    run, _ = trained_run(tmp_path / "a", steps=6)
+    source = load_simulator(run, checkpoint="latest")
+    data = make_dataset(tmp_path / "other")  # the same scene, other trajectories
+    # A learning rate so small that one Adam step (which moves each weight by about lr) leaves
+    # the weights where they started: the start itself is what is compared.
+    tiny = config(1, learning_rate=1e-9, learning_rate_final=1e-9)
+    tuned = train(data, tmp_path / "b", tiny, progress=False, init_from=run)
+    fresh = train(data, tmp_path / "c", tiny, progress=False)
+
+    assert largest_difference(weights(tuned), weights(source)) < 1e-6
+    assert largest_difference(weights(fresh), weights(source)) > 1e-3  # the test can fail
+    # The running statistics go on from the model's: what it had seen, plus the one batch the
+    # fresh run (same seed, so the same windows and noise) saw.
+    for name in ("velocity_normalizer", "acceleration_normalizer", "context_normalizer"):
+        counts = [getattr(s, name).count for s in (tuned, source, fresh)]
+        assert counts[0] == counts[1] + counts[2], name
+    saved = load_checkpoint(latest_checkpoint(tmp_path / "b"))
+    assert saved["init_from"] == str(run)
+    assert saved["step"] == 1  # the step count starts anew
+
+
+def test_a_fine_tuned_run_resumes_exactly(tmp_path):
+    run, data = trained_run(tmp_path / "a", steps=4)
+    straight = train(data, tmp_path / "b", config(6), progress=False, init_from=run)
+    train(data, tmp_path / "c", config(3), progress=False, init_from=run)
+    resumed = train(data, tmp_path / "c", config(6), progress=False, resume=True)
+    a, b = parameters(straight), parameters(resumed)
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    assert load_checkpoint(latest_checkpoint(tmp_path / "c"))["init_from"] == str(run)
+
+
+def test_fine_tuning_refuses_another_network_scene_or_a_resume(tmp_path):
+    run, data = trained_run(tmp_path / "a", steps=2)
+    wider = dataclasses.replace(
+        config(2), model=ModelConfig(latent_size=16, mlp_hidden_size=8, message_passing_steps=2)
+    )
+    with pytest.raises(ValueError, match=r"config's \[model\] differ from the model's"):
+        train(data, tmp_path / "b", wider, progress=False, init_from=run)
+
+    coarser = make_dataset(tmp_path / "coarser")
+    meta = json.loads((coarser / "metadata.json").read_text())
+    meta["dt"] = 0.005
+    (coarser / "metadata.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"dt 0.005 \(the model's: 0.0025\)"):
+        train(coarser, tmp_path / "c", config(2), progress=False, init_from=run)
+
+    train(data, tmp_path / "d", config(2), progress=False)
+    with pytest.raises(ValueError, match="--init-from starts a new run"):
+        train(data, tmp_path / "d", config(4), progress=False, resume=True, init_from=run)
+    assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
+
+
+def test_the_command_line_fine_tunes_with_the_models_own_config(tmp_path):
+    run, data = trained_run(tmp_path / "a", steps=2)
+    argv = ["train", "--data", str(data), "--out", str(tmp_path / "b"), "--init-from", str(run)]
+    assert main([*argv, "--steps", "1", "--quiet", "--threads", "1"]) == 0
+    tuned = load_checkpoint(latest_checkpoint(tmp_path / "b"))
+    assert tuned["config"]["model"] == load_checkpoint(latest_checkpoint(run))["config"]["model"]
+    assert tuned["init_from"] == str(run)
