@@ -13,6 +13,7 @@ from data_helpers import SAND
 from gns.cli import main
 from gns.config import Config, ModelConfig
 from gns.data.trajectory import Trajectory
+from gns.deposit import front_positions, runout_extent
 from gns.evaluate import (
     evaluate_rollouts,
     mean_neighbours,
@@ -21,7 +22,6 @@ from gns.evaluate import (
     rest_summary,
     rest_test,
 )
-from gns.metrics import front_positions, runout_extent
 from gns.rollout import Rollout, load_rollout, save_rollout
 from gns.simulator import LearnedSimulator, Scene
 from test_train import make_dataset

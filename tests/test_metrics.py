@@ -17,26 +17,24 @@ import math
 
 import numpy as np
 import pytest
-from gns.metrics import (
-    SinkhornConvergenceError,
-    constant_velocity_rollout,
+from gns.baselines import constant_velocity_rollout, static_rollout
+from gns.deposit import (
     deposit,
     deposit_ratios,
-    evaluate_rollout,
-    exact_optimal_transport,
     front_positions,
-    horizon_mse,
-    mmd,
-    mse_over_time,
-    one_step_mse,
-    optimal_transport,
     pile_floor,
     pile_height,
     ratio_of,
     runout_extent,
-    sinkhorn,
-    static_rollout,
 )
+from gns.distances import (
+    SinkhornConvergenceError,
+    exact_optimal_transport,
+    mmd,
+    optimal_transport,
+    sinkhorn,
+)
+from gns.metrics import evaluate_rollout, horizon_mse, mse_over_time, one_step_mse
 from scipy.optimize import linprog
 
 

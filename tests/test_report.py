@@ -22,9 +22,9 @@ from gns import mpm
 from gns.config import Config, ModelConfig, TrainConfig
 from gns.data import convert, open_dataset
 from gns.data.h5 import write_h5
+from gns.deposit import front_positions, pile_height, runout_extent
 from gns.evaluate import rest_summary, rest_test
 from gns.generate import generate, preset_scene
-from gns.metrics import front_positions, pile_height, runout_extent
 from gns.plots import (
     RolloutFigure,
     Series,
@@ -895,7 +895,7 @@ def test_the_animation_shows_a_diverged_prediction_up_to_where_it_diverged():
 
 
 def test_a_learned_rows_device_says_what_its_rollouts_ran_with():
-    from gns.report import _device_label
+    from gns.report.measure import _device_label
 
     cpu = torch.device("cpu")
     one = [{"torch_threads": 1, "precision": "fp32"}] * 2

@@ -26,14 +26,8 @@ from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
 from gns.data import Trajectory, open_dataset
 from gns.data.h5 import write_h5
 from gns.data.windows import WindowSampler
-from gns.train import (
-    TrainingStep,
-    batch_tensors,
-    better_validation,
-    stays_in_box,
-    train,
-    validate,
-)
+from gns.train import TrainingStep, batch_tensors, train
+from gns.validation import better_validation, stays_in_box, validate
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 

@@ -46,6 +46,7 @@ from torch import Tensor, nn
 
 import gns.model
 from gns.config import (
+    IMPLEMENTATIONS,
     CConvConfig,
     CoordinateMapping,
     Implementation,
@@ -246,7 +247,7 @@ def neighbourhood(
 ) -> Neighbourhood:
     """The Neighbourhood of a graph: tau (E, D) the displacements / R, senders and receivers
     (E,) int64, num_nodes N; settings: model.cconv; implementation "fast" or "plain"."""
-    if implementation not in ("fast", "plain"):
+    if implementation not in IMPLEMENTATIONS:
         raise ValueError(f"implementation must be 'fast' or 'plain', got {implementation!r}")
     index, weight = corner_weights(
         tau,
@@ -369,10 +370,10 @@ class CConv(nn.Module):
         with self._precision_context(node_features.device):
             x = torch.cat([node_features.new_ones(n, 1), node_features], dim=-1)
             h = torch.cat([self.conv0(x, graph), self.dense0(x)], dim=-1)
-            h = gns.model._at_least_fp32(h)
+            h = gns.model.at_least_fp32(h)
             for conv, dense in zip(self.convs, self.denses, strict=True):
                 y = torch.relu(h)
-                update = gns.model._at_least_fp32(conv(y, graph) + dense(y))
+                update = gns.model.at_least_fp32(conv(y, graph) + dense(y))
                 # A residual wherever a layer keeps the width, as in the original.
                 h = h + update if update.shape == h.shape else update
         return h

@@ -24,8 +24,8 @@ import torch
 from torch import Tensor
 
 from gns.config import Config, from_dict
-from gns.data.atomic import atomic_file
 from gns.device import resolve_device
+from gns.files import atomic_file
 from gns.simulator import LearnedSimulator, Scene
 
 __all__ = [
@@ -41,8 +41,10 @@ __all__ = [
     "load_checkpoint",
     "load_simulator",
     "model_location",
+    "recorded_checkpoint",
     "remove_stale_temporaries",
     "resume_checkpoint",
+    "run_folder",
     "save_checkpoint",
     "shipped_models",
     "simulator_from_checkpoint",
@@ -210,7 +212,7 @@ def model_location(text: str | os.PathLike[str]) -> Path:
     of that name."""
     path = Path(text)
     shipped = str(text) in shipped_models()
-    # A shipped model's outputs go to ./NAME (see gns.cli.run_folder): that folder, which holds
+    # A shipped model's outputs go to ./NAME (see run_folder): that folder, which holds
     # no model, must not hide the model of the same name.
     holds_model = path.is_file() or is_model_folder(path) or (path / "checkpoints").is_dir()
     if path.exists() and (holds_model or not shipped):
@@ -226,7 +228,7 @@ def model_location(text: str | os.PathLike[str]) -> Path:
 def choose_checkpoint(path: str | os.PathLike[str], which: str = "auto") -> Path:
     """The checkpoint file meant by `path`: the file itself, a model folder's model.pt, or in a
     run folder "latest" (the highest step), "best" (the best validation, see
-    gns.train.better_validation) or "auto" (best when the run has one, otherwise latest)."""
+    gns.validation.better_validation) or "auto" (best when the run has one, otherwise latest)."""
     path = Path(path)
     if not path.is_dir() or is_model_folder(path):
         if which != "auto":
@@ -316,3 +318,28 @@ def simulator_from_checkpoint(
     )
     simulator.load_state_dict(state["model"])
     return simulator.to(resolve_device(device))
+
+
+def run_folder(run: Path) -> Path:
+    """Where outputs of `--run RUN` go: RUN itself, the folder of a checkpoint file, or for a
+    model folder (a shipped model's among them) a folder of its name in the working directory:
+    a model's card and weights stay as they were shipped."""
+    if run.is_dir() and is_model_folder(run):
+        return Path.cwd() / run.name
+    return run if run.is_dir() else run.parent
+
+
+def recorded_checkpoint(recorded: str, run: Path) -> Path:
+    """The checkpoint file a rollout's metadata names. `gns rollout` records it absolute; older
+    versions recorded it as given, relative to the directory they ran in, which is tried here
+    as the working directory and then as the run folder."""
+    path = Path(recorded)
+    tried = [path] if path.is_absolute() else [path, run_folder(run) / path]
+    for candidate in tried:
+        if candidate.is_file():
+            return candidate
+    raise ValueError(
+        f"the rollouts were made with checkpoint {recorded}, which is not at "
+        f"{' nor at '.join(str(p.absolute()) for p in tried)}; pass --checkpoint latest or best "
+        "to use one of --run's"
+    )

@@ -333,8 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument(
         "--horizons",
         nargs="+",
-        default=["1", "10", "50", "full"],
-        help="frames from the first prediction, or full (default: 1 10 50 full)",
+        help="frames from the first prediction, or full (default: 1 10 50 full, "
+        "gns.report.REPORT_HORIZONS)",
     )
     rep.add_argument(
         "--every",
@@ -487,17 +487,6 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_folder(run: Path) -> Path:
-    """Where outputs of `--run RUN` go: RUN itself, the folder of a checkpoint file, or for a
-    model folder (a shipped model's among them) a folder of its name in the working directory:
-    a model's card and weights stay as they were shipped."""
-    from gns.checkpoints import is_model_folder
-
-    if run.is_dir() and is_model_folder(run):
-        return Path.cwd() / run.name
-    return run if run.is_dir() else run.parent
-
-
 def run_export(args: argparse.Namespace) -> int:
     from gns.checkpoints import MODEL_FILE, export_model
 
@@ -513,7 +502,7 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_rollout(args: argparse.Namespace) -> int:
-    from gns.checkpoints import choose_checkpoint, load_simulator
+    from gns.checkpoints import choose_checkpoint, load_simulator, run_folder
     from gns.data import at_frame_stride, describe_frame_stride, open_dataset
     from gns.device import resolve_device
     from gns.rollout import (
@@ -592,28 +581,23 @@ def run_rollout(args: argparse.Namespace) -> int:
     return 1 if diverged else 0
 
 
-def recorded_checkpoint(recorded: str, run: Path) -> Path:
-    """The checkpoint file a rollout's metadata names. `gns rollout` records it absolute; older
-    versions recorded it as given, relative to the directory they ran in, which is tried here
-    as the working directory and then as the run folder."""
-    path = Path(recorded)
-    tried = [path] if path.is_absolute() else [path, run_folder(run) / path]
-    for candidate in tried:
-        if candidate.is_file():
-            return candidate
-    raise ValueError(
-        f"the rollouts were made with checkpoint {recorded}, which is not at "
-        f"{' nor at '.join(str(p.absolute()) for p in tried)}; pass --checkpoint latest or best "
-        "to use one of --run's"
-    )
-
-
 def run_eval(args: argparse.Namespace) -> int:
-    from gns.checkpoints import choose_checkpoint, load_simulator
+    from gns.checkpoints import (
+        choose_checkpoint,
+        load_simulator,
+        recorded_checkpoint,
+        run_folder,
+    )
     from gns.data import at_frame_stride, describe_frame_stride, open_dataset
-    from gns.data.atomic import write_json_atomic
     from gns.device import resolve_device
-    from gns.evaluate import evaluate_rollouts, one_step_errors, rest_summary, rest_test
+    from gns.evaluate import (
+        evaluate_rollouts,
+        one_step_errors,
+        rest_summary,
+        rest_test,
+        summary_table,
+    )
+    from gns.files import write_json_atomic
     from gns.rollout import load_rollout, rollout_files
 
     set_threads(args.threads)
@@ -670,7 +654,7 @@ def run_eval(args: argparse.Namespace) -> int:
         print(
             f"one-step errors and rest test: {describe_frame_stride(dataset.metadata.dt, stride)}"
         )
-    print_summary(report["mean"])
+    print(summary_table(report["mean"]))
     if "rest" in report:
         figures = ", ".join(f"{k} {v:.4g}" for k, v in report["rest"]["mean"].items())
         print(
@@ -679,46 +663,6 @@ def run_eval(args: argparse.Namespace) -> int:
         )
     print(f"wrote {written}")
     return 0
-
-
-# The columns of `gns eval`'s summary: evaluate_rollouts' names and their headings.
-SUMMARY_COLUMNS = {
-    "model": "model",
-    "constant_velocity": "const. velocity",
-    "static": "static",
-    "ground_truth": "truth",
-}
-
-
-def print_summary(mean: dict[str, dict[str, float]]) -> None:
-    """evaluate_rollouts' means as a table: one line per figure, one column per name, and for
-    the errors how many times the model's each baseline's is (above 1: the model is better)."""
-    names = list(SUMMARY_COLUMNS)
-    keys = list(dict.fromkeys(k for name in names for k in mean.get(name, {})))
-    keys = [k for k in keys if k != "finite"] + ["finite"]
-    headings = [f"{SUMMARY_COLUMNS[n]:>{max(12, len(SUMMARY_COLUMNS[n]))}}" for n in names]
-    print(f"{'metric':<16} {' '.join(headings)} {'cv/model':>9} {'static/model':>12}")
-    for key in keys:
-        values = [mean.get(name, {}).get(key) for name in names]
-        cells = [
-            f"{'' if v is None else f'{v:.4g}':>{len(h)}}"
-            for v, h in zip(values, headings, strict=True)
-        ]
-        # Errors are compared as ratios; the other figures (the deposit, the box) are not.
-        error = key.startswith("mse@") or key in ("ot_mean", "mmd_mean", "one_step_mse")
-        model, ratios = values[0], []
-        for baseline, width in ((values[1], 9), (values[2], 12)):
-            ratio = ""
-            if error and baseline is not None and model and math.isfinite(model):
-                ratio = f"{baseline / model:.3g}"
-            ratios.append(f"{ratio:>{width}}")
-        print(f"{key:<16} {' '.join(cells)} {' '.join(ratios)}")
-    print(
-        "last frame: runout = 99th - 1st percentile of x, pile_height = 99th percentile of y "
-        "above the floor,\nneighbours within the connectivity radius; *_ratio: over the truth's "
-        "(1 is right); cv/model, static/model:\nthe baseline's error over the model's (above "
-        "1: the model is better)"
-    )
 
 
 def run_generate(args: argparse.Namespace) -> int:
@@ -762,9 +706,16 @@ def check_with(flag: str, parse: Callable[[list[str]], object], values: list[str
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from gns.report import DEFAULT_EVERY, parse_horizons, parse_mpm_variants, report
+    from gns.report import (
+        DEFAULT_EVERY,
+        REPORT_HORIZONS,
+        parse_horizons,
+        parse_mpm_variants,
+        report,
+    )
 
-    check_with("--horizons", parse_horizons, args.horizons)
+    if args.horizons is not None:
+        check_with("--horizons", parse_horizons, args.horizons)
     # The native grid and CFL number only size the "auto" variants: any valid pair checks the
     # settings here, before report() reads the dataset's own and starts rolling out.
     check_with("--mpm", lambda specs: parse_mpm_variants(specs, 20, 0.5), args.mpm)
@@ -776,7 +727,7 @@ def run_report(args: argparse.Namespace) -> int:
         checkpoints=args.checkpoint,
         out=args.out,
         trajectories=args.trajectories,
-        horizons=args.horizons,
+        horizons=REPORT_HORIZONS if args.horizons is None else args.horizons,
         every=DEFAULT_EVERY if args.every is None else args.every,
         mpm=args.mpm,
         animation_frames=args.animation_frames,

@@ -34,6 +34,7 @@ else:  # pragma: no cover
 __all__ = [
     "CConvConfig",
     "Config",
+    "IMPLEMENTATIONS",
     "MODEL_KINDS",
     "MODEL_NAMES",
     "ModelConfig",
@@ -47,18 +48,23 @@ __all__ = [
     "to_dict",
 ]
 
-NOISE_TYPES = ("random_walk", "only_last", "correlated", "uncorrelated")
+# Each Literal's values as a tuple too (typing.get_args), for the checks that a value is one.
 NoiseType = Literal["random_walk", "only_last", "correlated", "uncorrelated"]
+NOISE_TYPES: tuple[NoiseType, ...] = typing.get_args(NoiseType)
 NormalizationSource = Literal["running", "metadata"]
+NORMALIZATION_SOURCES: tuple[NormalizationSource, ...] = typing.get_args(NormalizationSource)
 Implementation = Literal["fast", "plain"]
+IMPLEMENTATIONS: tuple[Implementation, ...] = typing.get_args(Implementation)
 Precision = Literal["auto", "fp32", "bf16"]
+PRECISIONS: tuple[Precision, ...] = typing.get_args(Precision)
 ModelKind = Literal["gns", "cconv"]
-MODEL_KINDS = ("gns", "cconv")
+MODEL_KINDS: tuple[ModelKind, ...] = typing.get_args(ModelKind)
 # How reports and logs name each kind of model.
 MODEL_NAMES = {"gns": "GNS", "cconv": "CConv"}
 CoordinateMapping = Literal["ball_to_cube_volume_preserving", "ball_to_cube_radial", "identity"]
-COORDINATE_MAPPINGS = ("ball_to_cube_volume_preserving", "ball_to_cube_radial", "identity")
+COORDINATE_MAPPINGS: tuple[CoordinateMapping, ...] = typing.get_args(CoordinateMapping)
 Window = Literal["poly6", "none"]
+WINDOWS: tuple[Window, ...] = typing.get_args(Window)
 
 
 def _positive(owner: object, *names: str) -> None:
@@ -114,7 +120,7 @@ class CConvConfig:
                 f"CConvConfig.coordinate_mapping must be one of {list(COORDINATE_MAPPINGS)}, "
                 f"got {self.coordinate_mapping!r}"
             )
-        if self.window not in ("poly6", "none"):
+        if self.window not in WINDOWS:
             raise ValueError(f"CConvConfig.window must be 'poly6' or 'none', got {self.window!r}")
 
 
@@ -213,11 +219,11 @@ class ModelConfig:
             raise ValueError(
                 f"ModelConfig.mlp_hidden_layers must be >= 0, got {self.mlp_hidden_layers}"
             )
-        if self.implementation not in ("fast", "plain"):
+        if self.implementation not in IMPLEMENTATIONS:
             raise ValueError(
                 f"ModelConfig.implementation must be 'fast' or 'plain', got {self.implementation!r}"
             )
-        if self.precision not in ("auto", "fp32", "bf16"):
+        if self.precision not in PRECISIONS:
             raise ValueError(
                 f"ModelConfig.precision must be 'auto', 'fp32' or 'bf16', got {self.precision!r}"
             )
@@ -262,7 +268,7 @@ class NormalizationConfig:
     min_std: float = 1e-7
 
     def __post_init__(self) -> None:
-        if self.source not in ("running", "metadata"):
+        if self.source not in NORMALIZATION_SOURCES:
             raise ValueError(
                 f"NormalizationConfig.source must be 'running' or 'metadata', got {self.source!r}"
             )

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gns.data.atomic import claim_folder, write_json_atomic
+from gns.files import claim_folder, write_json_atomic
 
 __all__ = ["SIZES", "DemoSize", "demo", "demo_config"]
 

@@ -11,33 +11,33 @@ and static (every particle stays where the last input frame has it).
     rest_test(simulator, trajectory, steps)
                                           the trajectory's last frame held still and rolled
                                           out: does the model keep a settled pile in place?
-The metrics themselves are gns.metrics; this module only decides what is compared with what.
+The metrics themselves are gns.metrics, gns.deposit and gns.baselines; this module only decides
+what is compared with what.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
+from gns.baselines import constant_velocity_rollout, static_rollout
 from gns.batches import batch_tensors
 from gns.data.trajectory import Trajectory
 from gns.data.windows import collate, trajectory_windows, window_keys
-from gns.metrics import (
-    DEFAULT_HORIZONS,
+from gns.deposit import (
     DEPOSIT_CURVES,
     DEPOSIT_FIGURES,
-    constant_velocity_rollout,
     deposit,
     deposit_ratios,
-    evaluate_rollout,
     mean_neighbours,
     pile_floor,
     ratio_of,
-    static_rollout,
 )
+from gns.metrics import DEFAULT_HORIZONS, evaluate_rollout
 from gns.rollout import Rollout, RolloutDiverged, rollout
 from gns.simulator import LearnedSimulator
 
@@ -49,6 +49,7 @@ __all__ = [
     "outside_box",
     "rest_summary",
     "rest_test",
+    "summary_table",
 ]
 
 # What is scored: the learned model and the two baselines.
@@ -137,7 +138,7 @@ def evaluate_rollouts(
       mse@h, mse@full, ot_mean, mmd_mean   errors against the ground truth (gns.metrics)
       finite, outside_box                  1 if every frame is finite; how far the farthest
                                            particle left the box (with bounds)
-      runout, pile_height, neighbours      the last frame's deposit (gns.metrics.deposit): the
+      runout, pile_height, neighbours      the last frame's deposit (gns.deposit.deposit): the
                                            1st-to-99th percentile extent of x, the 99th
                                            percentile of y
                                            above the floor (the box's lower y bound, else the
@@ -314,3 +315,45 @@ def rest_test(
     if scene.bounds is not None:
         result["outside_box"] = outside_box(final[None], scene.bounds)
     return result
+
+
+# The columns of `gns eval`'s summary: evaluate_rollouts' names and their headings.
+SUMMARY_COLUMNS = {
+    "model": "model",
+    "constant_velocity": "const. velocity",
+    "static": "static",
+    "ground_truth": "truth",
+}
+
+
+def summary_table(mean: dict[str, dict[str, float]]) -> str:
+    """evaluate_rollouts' means as the text table `gns eval` prints: one line per figure, one
+    column per name, and for the errors how many times the model's each baseline's is (above 1:
+    the model is better)."""
+    names = list(SUMMARY_COLUMNS)
+    keys = list(dict.fromkeys(k for name in names for k in mean.get(name, {})))
+    keys = [k for k in keys if k != "finite"] + ["finite"]
+    headings = [f"{SUMMARY_COLUMNS[n]:>{max(12, len(SUMMARY_COLUMNS[n]))}}" for n in names]
+    lines = [f"{'metric':<16} {' '.join(headings)} {'cv/model':>9} {'static/model':>12}"]
+    for key in keys:
+        values = [mean.get(name, {}).get(key) for name in names]
+        cells = [
+            f"{'' if v is None else f'{v:.4g}':>{len(h)}}"
+            for v, h in zip(values, headings, strict=True)
+        ]
+        # Errors are compared as ratios; the other figures (the deposit, the box) are not.
+        error = key.startswith("mse@") or key in ("ot_mean", "mmd_mean", "one_step_mse")
+        model, ratios = values[0], []
+        for baseline, width in ((values[1], 9), (values[2], 12)):
+            ratio = ""
+            if error and baseline is not None and model and math.isfinite(model):
+                ratio = f"{baseline / model:.3g}"
+            ratios.append(f"{ratio:>{width}}")
+        lines.append(f"{key:<16} {' '.join(cells)} {' '.join(ratios)}")
+    lines.append(
+        "last frame: runout = 99th - 1st percentile of x, pile_height = 99th percentile of y "
+        "above the floor,\nneighbours within the connectivity radius; *_ratio: over the truth's "
+        "(1 is right); cv/model, static/model:\nthe baseline's error over the model's (above "
+        "1: the model is better)"
+    )
+    return "\n".join(lines)

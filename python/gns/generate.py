@@ -51,11 +51,11 @@ from typing import Any
 import numpy as np
 
 from gns import mpm
-from gns.data.atomic import atomic_file, atomic_folder, claim_folder
 from gns.data.deepmind import write_tfrecord
 from gns.data.metadata import DEFAULT_KINEMATIC_TYPES, Metadata
 from gns.data.stats import StatisticsAccumulator
 from gns.data.trajectory import Trajectory
+from gns.files import atomic_file, atomic_folder, claim_folder
 from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water
 
 __all__ = [

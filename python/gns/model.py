@@ -25,11 +25,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gns.config import Implementation, ModelConfig, Precision
+from gns.config import IMPLEMENTATIONS, Implementation, ModelConfig, Precision
 
 __all__ = [
     "EncodeProcessDecode",
     "InteractionNetwork",
+    "at_least_fp32",
     "build_mlp",
     "native_bf16",
     "resolve_precision",
@@ -78,13 +79,15 @@ def _run_mlp(layers: Iterable[nn.Module], x: Tensor) -> Tensor:
         if isinstance(layer, nn.ReLU):
             x = torch.relu_(x)
         elif isinstance(layer, nn.LayerNorm):
-            x = layer(_at_least_fp32(x))
+            x = layer(at_least_fp32(x))
         else:
             x = layer(x)
     return x
 
 
-def _at_least_fp32(x: Tensor) -> Tensor:
+def at_least_fp32(x: Tensor) -> Tensor:
+    """x in at least float32: bfloat16 (under autocast) becomes float32, float32 and float64
+    stay as they are. The GNS's and CConv's residual streams and outputs are kept so."""
     return x.to(torch.promote_types(x.dtype, torch.float32))
 
 
@@ -370,7 +373,7 @@ class EncodeProcessDecode(nn.Module):
         """node_features (N, node_input_size), edge_features (E, edge_input_size), senders and
         receivers (E,) int64; with a global latent also n_node (G,) (default: one graph) and
         global_features (G, global_input_size). Returns (N, output_size), at least float32."""
-        if self.implementation not in ("fast", "plain"):
+        if self.implementation not in IMPLEMENTATIONS:
             raise ValueError(
                 f"implementation must be 'fast' or 'plain', got {self.implementation!r}"
             )
@@ -395,7 +398,7 @@ class EncodeProcessDecode(nn.Module):
                 out = self._run_compiled(*args, num_graphs)
             else:
                 out = self._encode_process_decode(*args, num_graphs, self.implementation)
-        return out.to(torch.promote_types(out.dtype, torch.float32))
+        return at_least_fp32(out)
 
     def _precision_context(self, device: torch.device) -> AbstractContextManager[Any]:
         if resolve_precision(self.precision, device) == "bf16":
@@ -430,8 +433,8 @@ class EncodeProcessDecode(nn.Module):
         if implementation == "fast":
             # The residual streams in at least float32 under bf16 autocast (see _run_mlp; the
             # encoders' LayerNorms round to bf16 once).
-            nodes, edges = _at_least_fp32(nodes), _at_least_fp32(edges)
-            globals_ = None if globals_ is None else _at_least_fp32(globals_)
+            nodes, edges = at_least_fp32(nodes), at_least_fp32(edges)
+            globals_ = None if globals_ is None else at_least_fp32(globals_)
         for step in self.processor:
             nodes, edges, globals_ = step(
                 nodes, edges, senders, receivers, globals_, node_graph,

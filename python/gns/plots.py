@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from PIL import Image
 
-from gns.data.atomic import atomic_file
+from gns.files import atomic_file
 
 __all__ = [
     "RolloutFigure",
@@ -69,7 +69,7 @@ class Series:
     MSE and of optimal transport for the error-over-time figure, the rollout step at which it
     diverged (None if it did not), after which its values are inf, and the fronts of one
     trajectory, (S, 2): the 1st and 99th percentile of x in every predicted frame
-    (gns.metrics.front_positions), inf after a divergence."""
+    (gns.deposit.front_positions), inf after a divergence."""
 
     label: str
     seconds_per_frame: float | None

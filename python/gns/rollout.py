@@ -43,8 +43,8 @@ from torch import Tensor
 
 import gns
 from gns.config import Precision
-from gns.data.atomic import atomic_file
 from gns.data.trajectory import Trajectory
+from gns.files import atomic_file
 from gns.model import native_bf16, resolve_precision
 from gns.simulator import LearnedSimulator
 from gns.threads import StepTuner, thread_tuner, threads_fixed

@@ -18,7 +18,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from gns.data.atomic import write_bytes_atomic
+from gns.files import write_bytes_atomic
 
 __all__ = ["write_pvd", "write_series", "write_vtp"]
 

@@ -7,12 +7,12 @@ import json
 import sys
 from pathlib import Path
 
-from gns.data.atomic import write_json_atomic
 from gns.data.convert import TARGETS, convert
 from gns.data.dataset import open_dataset
 from gns.data.errors import DatasetError
 from gns.data.stats import Statistics, compute_statistics
 from gns.data.validate import validate_dataset
+from gns.files import write_json_atomic
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from gns.data.atomic import atomic_folder
 from gns.data.dataset import available_splits, open_dataset
 from gns.data.deepmind import write_tfrecord
 from gns.data.errors import DatasetError
@@ -35,6 +34,7 @@ from gns.data.npz import write_npz
 from gns.data.stats import StatisticsAccumulator
 from gns.data.stride import at_frame_stride, frames_at_stride
 from gns.data.trajectory import Trajectory
+from gns.files import atomic_folder
 
 TARGETS = ("deepmind", "npz", "h5", "lagrangebench")
 _SUFFIX = {"deepmind": ".tfrecord", "npz": ".npz", "h5": ".h5", "lagrangebench": ".h5"}

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import h5py  # type: ignore[import-untyped]
 
-from gns.data.atomic import atomic_file
 from gns.data.errors import DatasetError
 from gns.data.trajectory import Trajectory
+from gns.files import atomic_file
 
 # What h5py raises for a damaged file: OSError mostly, but a damaged object header can come
 # out as KeyError ("Unable to synchronously open object") or RuntimeError. Keys are checked

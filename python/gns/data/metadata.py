@@ -14,8 +14,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from gns.data.atomic import write_json_atomic
 from gns.data.errors import DatasetError
+from gns.files import write_json_atomic
 
 DEFAULT_KINEMATIC_TYPES = frozenset({3})
 LAGRANGEBENCH_KINEMATIC_TYPES = frozenset({1, 2, -1})

@@ -24,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-from gns.data.atomic import atomic_file
 from gns.data.errors import DatasetError
 from gns.data.trajectory import Trajectory
+from gns.files import atomic_file
 
 # The callables numpy's own pickles name, taken from live objects so both numpy 1.x
 # (numpy.core.multiarray) and 2.x (numpy._core.multiarray) resolve without importing either.

@@ -13,9 +13,9 @@ import struct
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from gns.data.atomic import atomic_file
 from gns.data.crc32c import masked_crc32c
 from gns.data.errors import DatasetError
+from gns.files import atomic_file
 
 _HEADER = struct.Struct("<QI")
 _FOOTER = struct.Struct("<I")

@@ -7,7 +7,7 @@ writes metadata.json (with the statistics of the train split) and one file per s
 layout asked for. Every input is checked before it is written, with an error that names the
 argument, or the split and trajectory, and the bad value; whatever passes reads back with
 `open_dataset` and has no problems in `validate_dataset`. The folder is built under a temporary
-name and renamed into place at the end (`gns.data.atomic`), so an error leaves nothing behind.
+name and renamed into place at the end (`gns.files`), so an error leaves nothing behind.
 Splits may be lazy iterables: trajectories are checked and written one at a time.
 """
 
@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from gns.data.atomic import atomic_folder
 from gns.data.convert import _SUFFIX, _writer, adapt
 from gns.data.dataset import SPLITS
 from gns.data.errors import DatasetError
@@ -28,6 +27,7 @@ from gns.data.metadata import _KNOWN, DEFAULT_KINEMATIC_TYPES, Metadata
 from gns.data.stats import StatisticsAccumulator
 from gns.data.trajectory import Trajectory
 from gns.data.validate import DEFAULT_KNOWN_TYPES
+from gns.files import atomic_folder
 
 # LagrangeBench numbers its particle types differently (and validates them so); datasets
 # written from one's own arrays use the DeepMind type table, so it is not offered here.

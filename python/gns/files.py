@@ -1,7 +1,8 @@
 """Atomic writes: build a file (or folder) under a temporary name, then rename it into place.
 
 A crash or an exception part way leaves the target untouched and removes the temporary, so users
-never find a half-written dataset.
+never find a half-written dataset, checkpoint, rollout or report. `claim_folder` makes a folder
+the one of a resumable run (gns generate, gns demo), its record written atomically.
 """
 
 from __future__ import annotations
@@ -15,6 +16,14 @@ import tempfile
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
+
+__all__ = [
+    "atomic_file",
+    "atomic_folder",
+    "claim_folder",
+    "write_bytes_atomic",
+    "write_json_atomic",
+]
 
 
 @functools.cache
