@@ -14,7 +14,7 @@ is sized once, at its first use; "auto" leaves it unset, so every frame runs on 
 one, whichever gns.mpm.simulate timed faster. --busy keeps one core busy with another process.
 
 Calibration: generates --trajectories train trajectories of the `waterdrop` and `sand` presets
-with gns.generate (frame counts of the presets, seed 0) and prints their per-frame velocity and
+with gns.mpm.generate (frame counts of the presets, seed 0) and prints their per-frame velocity and
 acceleration std against the paper's datasets (../shared/design/reference-simulator.md), with the
 ratio ours / paper; the design asks for every ratio within [1 / 1.5, 1.5].
 """
@@ -149,7 +149,7 @@ def speed(args: argparse.Namespace) -> None:
 
 def calibrate(args: argparse.Namespace) -> None:
     from gns.data import open_dataset
-    from gns.generate import generate
+    from gns.mpm.generate import generate
 
     print(
         f"per-frame statistics of {args.trajectories} generated train trajectories (seed 0) "

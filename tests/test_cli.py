@@ -13,9 +13,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from gns import checkpoints, generate
+from gns import checkpoints
 from gns.cli import main
 from gns.data import DatasetError
+from gns.mpm import generate
 from gns.rollout import load_rollout, save_rollout
 from test_train import make_dataset, trained_run
 

@@ -11,11 +11,11 @@ import math
 import numpy as np
 import pytest
 from data_helpers import SAND as SAND2D
-from gns import generate as gen
 from gns import mpm
 from gns.cli import main
 from gns.data import open_dataset
 from gns.data.validate import validate_dataset
+from gns.mpm import generate as gen
 
 G_DT2 = 9.81 * 0.0025**2  # free fall per frame^2
 

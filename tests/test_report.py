@@ -24,7 +24,7 @@ from gns.data import convert, open_dataset
 from gns.data.h5 import write_h5
 from gns.deposit import front_positions, pile_height, runout_extent
 from gns.evaluate import rest_summary, rest_test
-from gns.generate import generate, preset_scene
+from gns.mpm.generate import generate, preset_scene
 from gns.plots import (
     RolloutFigure,
     Series,

@@ -116,8 +116,8 @@ def existing_dir(text: str) -> Path:
 
 
 def preset_name(text: str) -> str:
-    """The argparse type of --preset: a scene preset of gns.generate."""
-    from gns.generate import PRESETS
+    """The argparse type of --preset: a scene preset of gns.mpm.generate."""
+    from gns.mpm.generate import PRESETS
 
     if text not in PRESETS:
         raise argparse.ArgumentTypeError(
@@ -267,12 +267,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_runtime_options(ev)
     ev.set_defaults(handler=run_eval)
 
-    from gns.generate import PRESETS
+    from gns.mpm.generate import PRESETS
 
     gen = sub.add_parser(
         "generate",
         help="simulate a dataset with the reference MPM simulator (DeepMind layout)",
-        description=f"Presets: {', '.join(PRESETS)} (see gns.generate). The dataset depends "
+        description=f"Presets: {', '.join(PRESETS)} (see gns.mpm.generate). The dataset depends "
         "on the arguments and --seed only, not on --workers. An interrupted run is resumed by "
         "repeating the command: finished trajectories are kept in OUT.partial/ until the "
         "dataset is complete.",
@@ -292,7 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     gen.add_argument(
         "--frames",
-        # Three frames are the fewest with an acceleration, as gns.generate requires.
+        # Three frames are the fewest with an acceleration, as gns.mpm.generate requires.
         type=whole_number(3),
         help="frames per trajectory, frame 0 included (default: preset's)",
     )
@@ -668,7 +668,7 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_generate(args: argparse.Namespace) -> int:
     import os
 
-    from gns.generate import generate
+    from gns.mpm.generate import generate
 
     summary = generate(
         args.preset,

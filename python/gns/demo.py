@@ -2,7 +2,7 @@
 
     demo("demo")   # OUT/data, OUT/run, OUT/report/report.md
 
-1. generate  a small dataset with the reference simulator (gns.generate; resumes by itself)
+1. generate  a small dataset with the reference simulator (gns.mpm.generate; resumes by itself)
 2. train     a small GNS for a bounded wall-clock time (gns.train's time_limit), validating on
              the valid split so that checkpoints/best.pt exists, with rollouts as long as the
              report's (whole trajectories)
@@ -135,7 +135,7 @@ def demo(
     """
     from gns.checkpoints import latest_checkpoint, load_checkpoint
     from gns.device import resolve_device
-    from gns.generate import PRESETS, generate
+    from gns.mpm.generate import PRESETS, generate
     from gns.report import report
     from gns.train import train
 

@@ -184,7 +184,7 @@ def _generated_runs(
     there are none: the metadata names no generator, or the preset no longer gives the data's
     initial particles."""
     from gns import mpm
-    from gns.generate import preset_scene
+    from gns.mpm.generate import preset_scene
 
     generator = _generator(metadata)
     if generator is None:

@@ -18,6 +18,9 @@ particle i of the result is particle i of that data:
 
 Units are SI: metres, seconds, kg/m^3, Pa. Particle types follow the DeepMind datasets (water 5,
 sand 6, goop 7, obstacles 3, kinematic).
+
+This package is the reference simulator, kept apart from the learned model; its submodule
+gns.mpm.generate draws scenes from presets and writes them as datasets (`gns generate`).
 """
 
 from __future__ import annotations
