@@ -17,7 +17,8 @@ import pytest
 import torch
 from gns.checkpoints import load_checkpoint, load_simulator
 from gns.config import TrainConfig, load_config
-from gns.train import SPIKES_SHOWN, Progress, SpikeReport, TrainingStep, train
+from gns.train import TrainingStep, train
+from gns.train_log import SPIKES_SHOWN, Progress, SpikeReport
 from test_train import config, make_dataset, parameters, read_csv
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -45,9 +46,9 @@ class Faults:
                 tensors["next_position"][0, 0] = float("nan")
             return tensors
 
-        def forward(module, *args):
+        def forward(module, *args, **kwargs):
             self.simulator = module.simulator
-            squared_sum, count = original_forward(module, *args)
+            squared_sum, count = original_forward(module, *args, **kwargs)
             if self.step == self.at and self.kind == "gradient":
                 # Adds 0 to the loss, but 0 * d sqrt(u)/du at u = 0 is NaN: one parameter's
                 # gradient becomes NaN while the loss stays finite.

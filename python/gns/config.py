@@ -339,6 +339,14 @@ class TrainConfig:
         loss_steps - 1 frames longer; the step context is taken at a window's last input frame
         and serves every step (where it changes within a trajectory, the earlier steps see the
         context of a frame up to loss_steps - 1 frames after their own).
+    pushforward: the pushforward trick (Brandstetter et al. 2022; LagrangeBench's unrolled
+        noise): weights w_0, w_1, ... such that each batch's input is first pushed k steps
+        forward by the model itself, without gradient, with probability w_k / sum(w); the loss
+        is then the one step from there to the ground truth (shifted by the kept input noise,
+        as always). The model so trains on inputs with its own errors in them, which noise
+        alone only imitates. E.g. [18, 2, 1, 1], LagrangeBench's mix once all its stages are
+        on. Empty (the paper's): no pushforward. Windows are len - 1 frames longer; not with
+        loss_steps > 1. k is drawn from (seed, step), so a resumed run pushes the same.
     max_grad_norm: clip each step's gradient to this 2-norm (over all parameters) before Adam
         applies it; None (the paper's) does not clip. On a dataset with rare impacts (blocks
         of sand landing) a few percent of batches carry most of the gradient's energy, and
@@ -364,7 +372,13 @@ class TrainConfig:
     mirror_axes: tuple[int, ...] = ()
     spike_factor: float = 10.0
     loss_steps: int = 1
+    pushforward: tuple[float, ...] = ()
     max_grad_norm: float | None = None
+
+    @property
+    def extra_frames(self) -> int:
+        """How many frames past the first target a window holds (loss_steps, pushforward)."""
+        return max(self.loss_steps, len(self.pushforward)) - 1
 
     def __post_init__(self) -> None:
         _positive(
@@ -379,6 +393,19 @@ class TrainConfig:
             "keep_checkpoints",
             "loss_steps",
         )
+        if self.pushforward and not (
+            all(math.isfinite(w) and w >= 0 for w in self.pushforward) and sum(self.pushforward) > 0
+        ):
+            raise ValueError(
+                "TrainConfig.pushforward must be weights >= 0 with a positive sum, got "
+                f"{list(self.pushforward)}"
+            )
+        if self.pushforward and self.loss_steps > 1:
+            raise ValueError(
+                "TrainConfig.pushforward and loss_steps > 1 are alternatives (both lengthen the "
+                f"windows); got pushforward {list(self.pushforward)} with loss_steps "
+                f"{self.loss_steps}"
+            )
         if not 0 <= self.learning_rate_final <= self.learning_rate:
             raise ValueError(
                 "TrainConfig.learning_rate_final must be in [0, learning_rate], got "

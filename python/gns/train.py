@@ -4,7 +4,8 @@ One gradient step (`TrainingStep.forward`): sample the input noise (C.2), add th
 running statistics (B.2), predict the normalised acceleration, and take the squared error summed
 over dimensions and averaged over the non-kinematic particles of the whole (global) batch; with
 train.loss_steps = K > 1, plus the errors of K - 1 further steps predicted from the model's own
-predictions (the multi-step loss CConv was trained with). The network is the GNS or, with
+predictions (the multi-step loss CConv was trained with); with train.pushforward, from inputs
+the model first pushed forward itself. The network is the GNS or, with
 model.kind = "cconv", section D.1's CConv baseline; checkpoints hold the config, which names it.
 Adam with lr(j) = final + (start - final) * 0.1^(j / decay_steps).
 
@@ -24,7 +25,6 @@ A run folder holds:
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import math
@@ -56,7 +56,7 @@ from gns.checkpoints import (
     simulator_from_checkpoint,
     statistics_dict,
 )
-from gns.config import Config, from_dict, to_dict
+from gns.config import Config, TrainConfig, from_dict, to_dict
 from gns.data import open_dataset
 from gns.data.windows import Batch, WindowSampler
 from gns.device import resolve_device
@@ -64,6 +64,7 @@ from gns.files import atomic_file
 from gns.normalization import RunningNormalizer
 from gns.simulator import LearnedSimulator, Scene
 from gns.threads import thread_tuner
+from gns.train_log import Progress, RunLog, SpikeReport
 from gns.validation import better_validation, validate, validation_trajectories
 
 __all__ = ["TrainingStep", "batch_tensors", "better_validation", "train", "validate"]
@@ -72,8 +73,6 @@ __all__ = ["TrainingStep", "batch_tensors", "better_validation", "train", "valid
 # are at least SPIKE_MIN_HISTORY of them (see TrainConfig.spike_factor).
 SPIKE_WINDOW = 100
 SPIKE_MIN_HISTORY = 20
-# Spikes printed one line each; later ones are counted and summarised (all go to spikes.csv).
-SPIKES_SHOWN = 3
 
 
 # ---------------------------------------------------------------------------------- one step
@@ -101,6 +100,10 @@ class TrainingStep(nn.Module):
     shifted by the same kept input noise as the first step's target, and the gradient runs back
     through the predictions. The acceleration error of a later step is then its position error
     (in normalised units), as in the original's position loss.
+
+    With pushforward = k > 0 (TrainConfig.pushforward), the noisy input is first pushed k
+    steps forward by the model without gradient, and the loss is the one step from there to
+    the ground truth k frames later (later_positions holds it).
     """
 
     def __init__(self, simulator: LearnedSimulator) -> None:
@@ -117,8 +120,23 @@ class TrainingStep(nn.Module):
         context: Tensor | None = None,
         material_property: Tensor | None = None,
         later_positions: Tensor | None = None,
+        pushforward: int = 0,
     ) -> tuple[Tensor, Tensor]:
         simulator = self.simulator
+        if pushforward:
+            assert later_positions is not None and later_positions.shape[1] >= pushforward
+            position_sequence, next_position = self._push_forward(
+                pushforward,
+                position_sequence,
+                next_position,
+                position_sequence_noise,
+                later_positions,
+                particle_type,
+                n_node,
+                context,
+                material_property,
+            )
+            later_positions = None
         predicted, target = simulator.predict_accelerations(
             next_position,
             position_sequence,
@@ -146,148 +164,45 @@ class TrainingStep(nn.Module):
                 squared = squared + (predicted.float() - target.float()).square().sum(dim=-1)
         return squared[free].sum(), free.sum()
 
-
-# ---------------------------------------------------------------------------------- logs
-
-
-class RunLog:
-    """Figures to CSV files and TensorBoard (rank 0 only); on resume, rows past the
-    checkpoint's step are dropped, because those steps are about to be trained again."""
-
-    def __init__(self, run_dir: Path, resume_step: int | None) -> None:
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.run_dir = run_dir
-        if resume_step is not None:
-            for name in ("train.csv", "valid.csv", "spikes.csv"):
-                self._truncate(run_dir / name, resume_step)
-        purge = None if resume_step is None else resume_step + 1
-        self.tensorboard = SummaryWriter(str(run_dir / "tensorboard"), purge_step=purge)
-
-    @staticmethod
-    def _truncate(path: Path, step: int) -> None:
-        if not path.exists():
-            return
-        with open(path, newline="") as f:
-            rows = list(csv.reader(f))
-
-        def kept_row(row: list[str]) -> bool:
-            # Rows of the header's width (a killed run may have left a cut-off last line).
-            return len(row) == len(rows[0]) and row[0].isdigit() and int(row[0]) <= step
-
-        kept = rows[:1] + [row for row in rows[1:] if kept_row(row)]
-        with atomic_file(path) as tmp, open(tmp, "w", newline="") as f:
-            csv.writer(f).writerows(kept)
-
-    def write(self, name: str, step: int, values: dict[str, float]) -> None:
-        path = self.run_dir / f"{name}.csv"
-        new = not path.exists()
-        with open(path, "a", newline="") as f:
-            writer = csv.writer(f)
-            if new:
-                writer.writerow(["step", *values])
-            writer.writerow([step, *(f"{v:.9g}" for v in values.values())])
-        for key, value in values.items():
-            self.tensorboard.add_scalar(f"{name}/{key}", value, step)
-        self.tensorboard.flush()
-
-    def spike(self, step: int, loss: float, median: float, windows: str) -> None:
-        path = self.run_dir / "spikes.csv"
-        new = not path.exists()
-        with open(path, "a", newline="") as f:
-            writer = csv.writer(f)
-            if new:
-                writer.writerow(["step", "loss", "recent_median", "windows"])
-            writer.writerow([step, f"{loss:.9g}", f"{median:.9g}", windows])
-
-    def close(self) -> None:
-        self.tensorboard.close()
+    @torch.no_grad()
+    def _push_forward(
+        self,
+        steps: int,
+        position_sequence: Tensor,
+        next_position: Tensor,
+        position_sequence_noise: Tensor,
+        later_positions: Tensor,
+        particle_type: Tensor,
+        n_node: Tensor | None,
+        context: Tensor | None,
+        material_property: Tensor | None,
+    ) -> tuple[Tensor, Tensor]:
+        """(input sequence, its next ground-truth frame) after the model's own `steps` steps
+        from the noisy input. The sequence is returned less the noise, which the caller adds
+        back, so that the target keeps the input noise as an unpushed step's does."""
+        simulator = self.simulator
+        kinematic = simulator.kinematic_mask(particle_type)[:, None]
+        sequence = position_sequence + position_sequence_noise
+        truth = next_position
+        for k in range(steps):
+            predicted = simulator(sequence, particle_type, n_node, context, material_property)
+            reached = simulator.decoder_postprocess(predicted, sequence)
+            # Kinematic particles follow the ground truth, as in a rollout.
+            reached = torch.where(kinematic, truth.to(reached.dtype), reached)
+            sequence = torch.cat([sequence[:, 1:], reached[:, None].to(sequence.dtype)], 1)
+            truth = later_positions[:, k]
+        return sequence - position_sequence_noise, truth
 
 
-class Progress:
-    """A one-line progress display on stderr: step, loss, steps/s and time left (the sooner of
-    the remaining steps and the remaining time limit, when there is one)."""
-
-    def __init__(
-        self, total: int, start: int, enabled: bool, time_limit: float | None = None
-    ) -> None:
-        self.total, self.start, self.enabled = total, start, enabled
-        self.started = time.perf_counter()
-        self.time_limit = time_limit
-        self.tty = sys.stderr.isatty()
-        self.last_shown = 0.0
-        self.threads: int | None = None
-
-    def rate(self, step: int) -> float:
-        elapsed = time.perf_counter() - self.started
-        return (step - self.start) / elapsed if elapsed > 0 else 0.0
-
-    def show(self, step: int, loss: float, force: bool = False, threads: int | None = None) -> None:
-        if threads is not None:
-            self.threads = threads
-        now = time.perf_counter()
-        if not self.enabled or (self.tty and not force and now - self.last_shown < 0.5):
-            return
-        if not self.tty and not force:
-            return
-        self.last_shown = now
-        rate = self.rate(step)
-        left = (self.total - step) / rate if rate > 0 else float("nan")
-        if self.time_limit is not None:
-            left = min(left, max(0.0, self.time_limit - (now - self.started)))
-        eta = time.strftime("%H:%M:%S", time.gmtime(left)) if math.isfinite(left) else "--"
-        line = f"step {step}/{self.total}  loss {loss:.4g}  {rate:.2f} steps/s  left {eta}"
-        if self.threads is not None:  # chosen by timing the steps (gns.threads)
-            line += f"  {self.threads} thread{'s' if self.threads > 1 else ''}"
-        sys.stderr.write(("\r" + line + "   ") if self.tty else line + "\n")
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.enabled and self.tty:
-            sys.stderr.write("\n")
-
-
-class SpikeReport:
-    """Loss spikes on stderr without flooding it: the first SPIKES_SHOWN each get a line, the
-    rest are only counted (every one is in spikes.csv), and `summarise` ends training with
-    their number and the worst. Rank 0 only (enabled)."""
-
-    def __init__(self, enabled: bool, meter: Progress) -> None:
-        self.enabled, self.meter = enabled, meter
-        self.count = 0
-        self.worst: tuple[float, int, float] | None = None  # (times the median, step, loss)
-
-    def _write(self, text: str) -> None:
-        newline = "\n" if self.meter.tty and self.meter.enabled else ""  # past \r lines
-        sys.stderr.write(f"{newline}{text}\n")
-
-    def add(self, step: int, loss: float, median: float, history: int, windows: str) -> None:
-        self.count += 1
-        factor = loss / median
-        if self.worst is None or factor > self.worst[0]:
-            self.worst = (factor, step, loss)
-        if not self.enabled or self.count > SPIKES_SHOWN:
-            return
-        more = (
-            "; further spikes are counted, listed in spikes.csv and summarised at the end"
-            if self.count == SPIKES_SHOWN
-            else ""
-        )
-        self._write(
-            f"loss spike at step {step}: {loss:.4g}, {factor:.1f} times the median "
-            f"{median:.4g} of the previous {history} steps, on the batch of windows "
-            f"(trajectory:start) {windows}; training goes on{more}"
-        )
-
-    def summarise(self, path: Path) -> None:
-        if not self.enabled or self.worst is None:
-            return
-        factor, step, loss = self.worst
-        self._write(
-            f"{self.count} loss spike{'s' if self.count > 1 else ''} this session (loss above "
-            f"the spike factor times the recent median); the worst at step {step}: {loss:.4g}, "
-            f"{factor:.1f} times the median; each with its batch in {path}"
-        )
+def _pushforward_steps(config: TrainConfig, step: int) -> int:
+    """How many steps the model pushes this step's batch forward (TrainConfig.pushforward):
+    drawn from (seed, step) alone, so every rank and a resumed run push alike."""
+    if not config.pushforward:
+        return 0
+    weights = np.asarray(config.pushforward, dtype=np.float64)
+    # The extra entry keeps this stream apart from mirroring's (seed, step, rank).
+    rng = np.random.default_rng([config.seed, step, 0, 1])
+    return int(rng.choice(len(weights), p=weights / weights.sum()))
 
 
 # ---------------------------------------------------------------------------------- the loop
@@ -519,10 +434,10 @@ def train(
             step_module, device_ids=ids, broadcast_buffers=False
         )
     optimizer = torch.optim.Adam(simulator.parameters(), lr=tc.learning_rate)
-    # loss_steps - 1 more frames per window: the ground truth of the later steps.
+    # More frames per window: the ground truth of the later steps (loss_steps, pushforward).
     sampler = WindowSampler(
         dataset,
-        history + tc.loss_steps - 1,
+        history + tc.extra_frames,
         seed=tc.seed,
         trajectories_in_memory=tc.trajectories_in_memory,
         rank=rank,
@@ -641,7 +556,7 @@ def train(
                 t["particle_type"],  # type: ignore[arg-type]
                 generator,
             )
-            later = (targets[:, 1:],) if tc.loss_steps > 1 else ()
+            unroll = _pushforward_steps(tc, step)
             squared_sum, count = step_module(
                 sequence,
                 targets[:, 0],
@@ -650,7 +565,8 @@ def train(
                 t["n_node"],
                 t["context"],
                 t["material_property"],
-                *later,
+                later_positions=targets[:, 1:] if tc.loss_steps > 1 or unroll else None,
+                pushforward=unroll,
             )
             count = count.to(squared_sum.dtype)
             if world > 1:
