@@ -76,3 +76,74 @@ def test_the_version_has_one_source():
     pyproject = tomllib.loads((root / "pyproject.toml").read_text())["project"]
     assert "version" not in pyproject and "version" in pyproject["dynamic"]
     assert gns.__version__ == cargo
+
+
+def module_imports(root: Path) -> dict[str, set[str]]:
+    """Every gns module's imports of other gns modules, at any depth in the file (a lazy import
+    inside a function is still a dependency), found with ast, not by importing."""
+    import ast
+
+    modules: dict[str, set[str]] = {}
+    for path in sorted(root.rglob("*.py")):
+        parts = path.relative_to(root.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        found: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                found.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1])
+                    base = f"{base}.{node.module}" if node.module else base
+                # `from gns.x import y` may import the submodule gns.x.y or a name of gns.x.
+                found.update(f"{base}.{a.name}" for a in node.names)
+                found.add(base)
+        modules[name] = found
+    # Keep only imports of gns modules that exist; a name of a module counts as the module.
+    return {
+        name: {i for i in found if i in modules and i != name} - {"gns"}
+        for name, found in modules.items()
+    }
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The cycles a depth-first walk of `graph` meets (each as a path back to its start)."""
+    cycles: list[list[str]] = []
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(name: str, path: list[str]) -> None:
+        state[name] = 1
+        for other in sorted(graph.get(name, ())):
+            if state.get(other) == 1:
+                cycles.append(path[path.index(other) :] + [other])
+            elif other not in state:
+                visit(other, [*path, other])
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
+    return cycles
+
+
+def test_no_import_cycles_between_modules():
+    # The package itself (gns/__init__.py) only maps names to modules, lazily, and the
+    # extension (gns._core) has no Python imports: neither can close a cycle that matters.
+    graph = module_imports(Path(gns.__file__).parent)
+    graph.pop("gns", None)
+    assert len(graph) > 40, sorted(graph)  # the walk found the package's modules
+    assert import_cycles(graph) == []
+
+
+def test_the_cycle_check_sees_a_cycle(tmp_path):
+    package = tmp_path / "gns"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text("def f():\n    from gns.b import g\n")
+    (package / "b.py").write_text("from gns import a\n")
+    (package / "c.py").write_text("import gns.a\n")
+    graph = module_imports(package)
+    assert graph == {"gns": set(), "gns.a": {"gns.b"}, "gns.b": {"gns.a"}, "gns.c": {"gns.a"}}
+    assert import_cycles(graph) == [["gns.a", "gns.b", "gns.a"]]
