@@ -1,6 +1,6 @@
 //! The reference simulator: 2D MLS-MPM (moving least squares material point method, Hu et al.
-//! 2018) with APIC transfers and quadratic B-splines, as described in
-//! `../shared/design/reference-simulator.md`. It makes ground truth and is the solver the learned
+//! 2018) with APIC transfers and quadratic B-splines (docs/reference-simulator.md has its
+//! validation against Taichi-Elements). It makes ground truth and is the solver the learned
 //! model is timed against.
 //!
 //! One substep: particles to grid (mass, momentum and the stress impulse), grid update (gravity,

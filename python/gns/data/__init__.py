@@ -1,4 +1,4 @@
-"""Dataset readers, validation, statistics and conversion (see shared/design/formats.md).
+"""Dataset readers, validation, statistics and conversion.
 
     open_dataset(path, split)   -> Dataset of Trajectory (positions (T, N, D) float32, ...)
     training_windows / pack_batches -> shuffled windows and particle-budget batches

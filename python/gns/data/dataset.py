@@ -1,6 +1,6 @@
 """`open_dataset`: detect a dataset's layout and give its trajectories and metadata.
 
-Layouts (see shared/design/formats.md):
+Layouts:
   "deepmind"       folder with metadata.json and {split}.tfrecord
   "npz"            folder with metadata.json and {split}.npz (geoelements, variants A and B)
   "h5"             folder with metadata.json and {split}.h5 whose groups hold `positions`

@@ -1,4 +1,4 @@
-"""Per-trajectory npz folders described by a manifest.json (e.g. shared/data/sand2d-taichi).
+"""Per-trajectory npz folders described by a manifest.json (e.g. the sand2d-taichi dataset).
 
 The folder has no metadata.json: the manifest gives bounds, frame spacing and, per file, the
 friction angle and initial velocity. Each trajectory gets the friction angle as a global feature,

@@ -65,7 +65,7 @@ class Water:
 
 @dataclass(frozen=True)
 class Sand:
-    """Drucker-Prager sand without cohesion; defaults are those of ../shared/data/sand2d-taichi."""
+    """Drucker-Prager sand without cohesion; the defaults are the sand2d-taichi dataset's."""
 
     density: float = 1800.0
     youngs_modulus: float = 2e6

@@ -2,7 +2,7 @@
 
     generate("sand", "data/sand", n_train=100, n_valid=10, n_test=10, seed=0, workers=2)
 
-Presets (../shared/design/reference-simulator.md, "Scenes") are functions rng -> (MpmScene,
+Presets (the paper's scenes, docs/reference-simulator.md) are functions rng -> (MpmScene,
 frames), `frames` counting frame 0, so a preset's sequence_length is the paper's (WaterDrop 1000,
 Sand 320, Goop 400, WaterRamps 600, MultiMaterial 1000):
   waterdrop      one block of water at rest, width U(0.1, 0.3), height U(0.15, 0.35)
