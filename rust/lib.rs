@@ -1,9 +1,9 @@
 //! Rust core of `gns`: the work done at every step of a learned particle simulator.
 //!
 //! Pure functions over slices; only `python.rs` (behind the `python` feature) names pyo3/numpy.
-//! - [`graph`]: radius graphs (dispatch, batching by `n_node`, canonical distance, brute force)
-//! - [`cells`]: the cell-list search used by default
-//! - [`kdtree`]: a k-d tree search for sparse or very non-uniform clouds
+//! - [`graph`]: radius graphs (dispatch, batching by `n_node`, canonical distance, brute force),
+//!   with the cell-list search used by default (`graph/cells.rs`) and a k-d tree search for
+//!   sparse or very non-uniform clouds (`graph/kdtree.rs`)
 //! - [`walls`]: clipped distances to box walls and to obstacle shapes (parry)
 //! - [`integrate`]: the semi-implicit Euler update
 //! - [`mpm`]: the reference simulator (2D MLS-MPM) that makes ground truth
@@ -11,10 +11,8 @@
 // Per-axis loops index several per-axis arrays at once; an index reads clearer than zips.
 #![allow(clippy::needless_range_loop)]
 
-pub mod cells;
 pub mod graph;
 pub mod integrate;
-pub mod kdtree;
 pub mod mpm;
 pub mod walls;
 

@@ -2,9 +2,10 @@
 //! from the graph's actual bounding box, with positions copied in cell order (structure of
 //! arrays) so that each query scans a few contiguous runs instead of 9 or 27 scattered cells.
 
-use crate::graph::{
-    accept_at, clump_edges, has_avx2, tight, with_simd, Ctx, Found, Prepared, RowSink, SharedMut,
-};
+use super::prepare::Prepared;
+use super::query::{accept_at, clump_edges, tight, Ctx, Found};
+use super::rows::{RowSink, SharedMut};
+use super::simd::{has_avx2, with_simd};
 use rayon::prelude::*;
 
 /// The grid declines (and the caller uses the k-d tree) when it would need more cells than

@@ -2,7 +2,8 @@
 //! pruning. Slower than the grid at simulation densities, but indifferent to how the points are
 //! spread, so it serves sparse clouds, far outliers, and as a second opinion in tests.
 
-use crate::graph::{accept_at, clump_edges, tight, Ctx, Found, Prepared};
+use super::prepare::Prepared;
+use super::query::{accept_at, clump_edges, tight, Ctx, Found};
 
 const LEAF: usize = 12;
 const NO_CHILD: u32 = u32::MAX;
