@@ -13,8 +13,9 @@ Cases, all 2D with R = 0.015 (the paper's 2D radius):
 - "sand2d-taichi": trajectory 0 of the real data's train split from frame 100 (656 particles,
   friction angle as context); skipped with a message when the data is absent.
 
-Rollout step: gns.rollout.rollout itself (inference mode, eval mode), split as it times it into
-graph (Rust radius graph) / features / model (EncodeProcessDecode) / integration; `reps`
+Rollout step: gns.rollout.rollout itself (inference mode, eval mode), split as it times it (the
+parts LearnedSimulator.predict_positions marks) into graph (Rust radius graph) / features /
+model (EncodeProcessDecode) / integration; `reps`
 rollouts of `steps` steps from the same start, so the graph stays that of the case.
 Training step: one window (one graph) through gns.train.TrainingStep: noise, forward, backward,
 Adam. Times are median (min) after warm-up, perf_counter, CUDA synchronised.

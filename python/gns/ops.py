@@ -176,6 +176,11 @@ class RadiusSearcher:
     def num_threads(self) -> int | None:
         return self._inner.num_threads
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # The buffers are a cache, and the core's searcher cannot be pickled: a copy (pickle,
+        # copy.deepcopy, e.g. of a LearnedSimulator holding one) starts with empty ones.
+        return (RadiusSearcher, (self.num_threads,))
+
     def __call__(
         self,
         positions: Any,

@@ -7,9 +7,10 @@
     save_rollout / load_rollout     our npz schema (formats.md "Rollout files"), no pickle
     save_deepmind_pickle            DeepMind learning_to_simulate's rollout pickle layout
 
-Every step is timed in four parts: "graph" (the Rust radius graph), "features" (the rest of the
-preprocess), "model" (the network: EncodeProcessDecode or CConv) and "integration" (decoder
-postprocess, i.e. de-normalisation and the Euler update, plus the kinematic override).
+Every step is LearnedSimulator.predict_positions, timed in the four parts it marks: "graph"
+(the Rust radius graph), "features" (the rest of the preprocess), "model" (the network:
+EncodeProcessDecode or CConv) and "integration" (decoder postprocess, i.e. de-normalisation and
+the Euler update, plus the kinematic override done here).
 
 A non-finite prediction stops the rollout with `RolloutDiverged`, which carries the finite part;
 NaN never travels on into later steps, metrics or files.
@@ -63,7 +64,7 @@ __all__ = [
     "save_rollout",
 ]
 
-TIMING_PARTS = ("graph", "features", "model", "integration")
+TIMING_PARTS = ("graph", "features", "model", "integration")  # predict_positions' marks
 # The network's arguments among LearnedSimulator.features' outputs, in order.
 FEATURE_KEYS = ("node_features", "edge_features", "senders", "receivers", "global_features")
 SCHEMA = "gns.rollout/1"
@@ -247,12 +248,17 @@ _RUNTIME: weakref.WeakKeyDictionary[
 
 
 def _runtime(
-    simulator: LearnedSimulator, device: torch.device, features: Mapping[str, Any], clock: Any
+    simulator: LearnedSimulator,
+    device: torch.device,
+    features: Callable[[], Mapping[str, Any]],
+    clock: Any,
 ) -> tuple[Precision, StepTuner[int]]:
+    """The precision and thread tuner of `simulator`'s rollouts; `features` gives the first
+    step's features, computed only when the precision is decided anew."""
     signature = (device, simulator.model.precision, threads_fixed())
     cached = _RUNTIME.get(simulator)
     if cached is None or cached[0] != signature:
-        precision = rollout_precision(simulator.model, features, device, clock)
+        precision = rollout_precision(simulator.model, features(), device, clock)
         tuner = thread_tuner()
         cached = (signature, precision, tuner)
         _RUNTIME[simulator] = cached
@@ -366,9 +372,9 @@ def rollout(
         divergence; None: never. Positions that far off are garbage, and the model would only
         go on feeding them to the graph and the next step.
 
-    Step t feeds frames t ... t + C (particle-major, (N, C + 1, D)), the step context of frame
-    t + C (the last input frame, as training windows do) and the material property, exactly as
-    `simulator.predict_positions` does; kinematic particles are then set to ground-truth frame
+    Step t is `simulator.predict_positions` of frames t ... t + C (particle-major,
+    (N, C + 1, D)), the step context of frame t + C (the last input frame, as training windows
+    do) and the material property; kinematic particles are then set to ground-truth frame
     t + C + 1. Runs under torch.inference_mode() in eval mode; the simulator's previous mode is
     restored. Raises ValueError for unusable arguments and RolloutDiverged (a ValueError) at the
     first step with a non-finite position or an escaped particle, naming the step and particles.
@@ -450,36 +456,42 @@ def rollout(
             timings={part: seconds[i, :steps].copy() for i, part in enumerate(TIMING_PARTS)},
         )
 
-    marks: dict[str, float] = {}  # when each part of a step ended (features marks "graph")
+    marks: dict[str, float] = {}  # when each part of a step ended (predict_positions marks)
 
     def mark(part: str) -> None:
         marks[part] = now()
 
-    was_training = simulator.training
+    def context_at(frame: int) -> Tensor | None:
+        return None if context is None else context[frame]
+
+    was_training, saved_precision = simulator.training, simulator.model.precision
     simulator.eval()
     try:
         with torch.inference_mode():
+            # Decided before the first step (from its features, when it must be measured)
+            # and kept for the whole rollout, so that the steps never mix precisions.
+            precision, tuner = _runtime(
+                simulator,
+                device,
+                lambda: simulator.features(window, types, None, context_at(c), material),
+                now,
+            )
+            tuner.__enter__()
+            simulator.model.precision = precision
             for step in range(num_steps):
                 frame = step + c  # the last input frame
-                step_context = None if context is None else context[frame]
-                t0 = now()
-                f = simulator.features(
-                    window, types, context=step_context, material_property=material, mark=mark
+                tuner.begin()  # outside the timed step: the tuner's own work is not charged
+                start = now()
+                next_position = simulator.predict_positions(
+                    window, types, None, context_at(frame), material, mark=mark
                 )
-                t1 = now()
-                if tuner is None:
-                    precision, tuner = _runtime(simulator, device, f, now)
-                    tuner.__enter__()
-                tuner.begin()
-                t2 = now()
-                normalized_acceleration = _forward(simulator.model, f, precision)
-                t3 = now()
-                next_position = simulator.decoder_postprocess(normalized_acceleration, window)
                 if num_kinematic:
                     next_position[kinematic_index] = kinematic_truth[frame + 1]
-                t4 = now()
-                seconds[:, step] = (marks["graph"] - t0, t1 - marks["graph"], t3 - t2, t4 - t3)
-                tuner.end(seconds[:, step].sum())  # the step without the tuner's own work
+                # Each part from the end of the one before; integration ends here, after the
+                # kinematic override.
+                ends = [*(marks[part] for part in TIMING_PARTS[:-1]), now()]
+                seconds[:, step] = np.diff([start, *ends])
+                tuner.end(seconds[:, step].sum())
 
                 bad = ~torch.isfinite(next_position).all(dim=-1)
                 nonfinite = int(bad.sum())
@@ -512,6 +524,7 @@ def rollout(
     finally:
         if tuner is not None:
             tuner.__exit__()
+        simulator.model.precision = saved_precision
         simulator.train(was_training)
     return result(num_steps)
 
