@@ -260,7 +260,7 @@ class NoiseConfig:
 class NormalizationConfig:
     """source: "running" accumulates exact statistics of everything seen in training, after
     noise (B.2); "metadata" uses metadata.json's statistics with the velocity and acceleration
-    std inflated by the noise std (formats.md).
+    std inflated by the noise std (docs/formats.md, "Statistics").
     min_std: a std below this is treated as 1 (a constant feature is centred, not blown up).
     """
 

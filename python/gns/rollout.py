@@ -4,7 +4,7 @@
                                     each predicted from the C + 1 before it (section 3: the
                                     model is applied to its own outputs); kinematic particles
                                     are held to the ground truth at every step
-    save_rollout / load_rollout     our npz schema (formats.md "Rollout files"), no pickle
+    save_rollout / load_rollout     our npz schema (docs/formats.md, "Rollout files"), no pickle
     save_deepmind_pickle            DeepMind learning_to_simulate's rollout pickle layout
 
 Every step is LearnedSimulator.predict_positions, timed in the four parts it marks: "graph"
