@@ -153,9 +153,7 @@ class TrainingStep(nn.Module):
             sequence = position_sequence + position_sequence_noise
             truth = next_position
             for k in range(later_positions.shape[1]):
-                reached = simulator.decoder_postprocess(predicted, sequence)
-                reached = torch.where(kinematic, truth.to(reached.dtype), reached)
-                sequence = torch.cat([sequence[:, 1:], reached[:, None].to(sequence.dtype)], 1)
+                sequence = _moved_on(simulator, sequence, predicted, truth, kinematic)
                 truth = later_positions[:, k]
                 predicted = simulator(sequence, particle_type, n_node, context, material_property)
                 target = simulator.target_normalized_acceleration(
@@ -186,12 +184,24 @@ class TrainingStep(nn.Module):
         truth = next_position
         for k in range(steps):
             predicted = simulator(sequence, particle_type, n_node, context, material_property)
-            reached = simulator.decoder_postprocess(predicted, sequence)
-            # Kinematic particles follow the ground truth, as in a rollout.
-            reached = torch.where(kinematic, truth.to(reached.dtype), reached)
-            sequence = torch.cat([sequence[:, 1:], reached[:, None].to(sequence.dtype)], 1)
+            sequence = _moved_on(simulator, sequence, predicted, truth, kinematic)
             truth = later_positions[:, k]
         return sequence - position_sequence_noise, truth
+
+
+def _moved_on(
+    simulator: LearnedSimulator,
+    sequence: Tensor,
+    predicted: Tensor,
+    truth: Tensor,
+    kinematic: Tensor,
+) -> Tensor:
+    """The input sequence (N, C + 1, D) one frame on: its oldest frame dropped, the positions
+    the predicted normalised acceleration reaches appended; kinematic particles (N, 1) follow
+    the ground truth `truth`, as in a rollout."""
+    reached = simulator.decoder_postprocess(predicted, sequence)
+    reached = torch.where(kinematic, truth.to(reached.dtype), reached)
+    return torch.cat([sequence[:, 1:], reached[:, None].to(sequence.dtype)], 1)
 
 
 def _pushforward_steps(config: TrainConfig, step: int) -> int:
