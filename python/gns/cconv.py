@@ -36,9 +36,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -367,7 +365,7 @@ class CConv(nn.Module):
         n = node_features.shape[0]
         tau = edge_features[:, : self.dim]
         graph = neighbourhood(tau, senders, receivers, n, self.config.cconv, self.implementation)
-        with self._precision_context(node_features.device):
+        with gns.model.precision_context(self.precision, node_features.device):
             x = torch.cat([node_features.new_ones(n, 1), node_features], dim=-1)
             h = torch.cat([self.conv0(x, graph), self.dense0(x)], dim=-1)
             h = gns.model.at_least_fp32(h)
@@ -377,8 +375,3 @@ class CConv(nn.Module):
                 # A residual wherever a layer keeps the width, as in the original.
                 h = h + update if update.shape == h.shape else update
         return h
-
-    def _precision_context(self, device: torch.device) -> AbstractContextManager[Any]:
-        if gns.model.resolve_precision(self.precision, device) == "bf16":
-            return torch.autocast(device.type, dtype=torch.bfloat16)
-        return nullcontext()

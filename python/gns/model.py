@@ -33,6 +33,7 @@ __all__ = [
     "at_least_fp32",
     "build_mlp",
     "native_bf16",
+    "precision_context",
     "resolve_precision",
 ]
 
@@ -300,6 +301,14 @@ def native_bf16(device: torch.device | str) -> bool:
     return False
 
 
+def precision_context(precision: Precision, device: torch.device) -> AbstractContextManager[Any]:
+    """Where a network's forward runs: under bf16 autocast when `precision` resolves to bf16
+    on `device` (see resolve_precision), otherwise as it is. Shared by the GNS and CConv."""
+    if resolve_precision(precision, device) == "bf16":
+        return torch.autocast(device.type, dtype=torch.bfloat16)
+    return nullcontext()
+
+
 def resolve_precision(precision: Precision, device: torch.device | str) -> Precision:
     """ "fp32" or "bf16": what the network runs in. "auto" is fp32 (the paper's): bf16 was
     measured both faster and slower than fp32 depending on the model's size and the CPU
@@ -393,17 +402,12 @@ class EncodeProcessDecode(nn.Module):
         elif global_features is not None:
             raise ValueError("this model has no global input; append global features to nodes")
         args = (node_features, edge_features, senders, receivers, global_features, node_graph)
-        with self._precision_context(device):
+        with precision_context(self.precision, device):
             if self.implementation == "fast" and self.torch_compile:
                 out = self._run_compiled(*args, num_graphs)
             else:
                 out = self._encode_process_decode(*args, num_graphs, self.implementation)
         return at_least_fp32(out)
-
-    def _precision_context(self, device: torch.device) -> AbstractContextManager[Any]:
-        if resolve_precision(self.precision, device) == "bf16":
-            return torch.autocast(device.type, dtype=torch.bfloat16)
-        return nullcontext()
 
     def _encode_process_decode(
         self,
