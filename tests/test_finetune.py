@@ -47,6 +47,32 @@ def test_fine_tuning_starts_from_the_model_and_adds_to_its_statistics(tmp_path):
     assert saved["step"] == 1  # the step count starts anew
 
 
+def test_fine_tuning_trains_with_its_own_noise(tmp_path):
+    run, data = trained_run(tmp_path / "a", steps=4)
+    source = load_simulator(run, checkpoint="latest")
+    quieter = dataclasses.replace(
+        source.config,
+        noise=dataclasses.replace(source.config.noise, std=source.config.noise.std / 10),
+        train=config(3).train,
+    )
+    tuned = train(data, tmp_path / "b", quieter, progress=False, init_from=run)
+    assert tuned.config == quieter
+    # The noise it draws is the run's: std / 10 at the last input frame (random walk).
+    sequence = torch.zeros(20000, source.config.model.velocity_history + 1, 2)
+    noise = tuned.sample_noise(sequence, torch.full((20000,), 5), torch.Generator().manual_seed(0))
+    last_velocity = noise[:, -1] - noise[:, -2]
+    assert abs(float(last_velocity.std()) / quieter.noise.std - 1) < 0.05
+    # ... so training differs from fine-tuning with the model's own noise (the test can fail).
+    same = train(
+        data,
+        tmp_path / "c",
+        dataclasses.replace(quieter, noise=source.config.noise),
+        progress=False,
+        init_from=run,
+    )
+    assert largest_difference(weights(tuned), weights(same)) > 0
+
+
 def test_a_fine_tuned_run_resumes_exactly(tmp_path):
     run, data = trained_run(tmp_path / "a", steps=4)
     straight = train(data, tmp_path / "b", config(6), progress=False, init_from=run)

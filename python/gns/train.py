@@ -420,6 +420,10 @@ def train(
         statistics = statistics_dict(dataset.metadata)
     else:  # resumed or fine-tuned: the weights and statistics (metadata or running) carry on
         simulator = simulator_from_checkpoint(initial)
+        # The run's settings, not the checkpoint's: a fine-tuning run may change [noise] (which
+        # the simulator draws its input noise by) and [train]; [model], [scene] and
+        # [normalization] are the checkpoint's (checked above).
+        simulator.config = config
         statistics = initial["statistics"]
         if checkpoint is None:
             _check_fine_tuning_scene(
