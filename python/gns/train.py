@@ -341,8 +341,9 @@ def train(
     instead of fresh ones; the optimizer, the learning-rate schedule and the step count start
     anew. Its [model], [scene] and [normalization] settings must be config's (config None:
     the model's own config), and the data must be the model's scene: the same dimension,
-    box, frame spacing and global input, with particle types it knows. The checkpoints record
-    where the weights came from.
+    frame spacing and global input, with particle types it knows (another box is announced;
+    the model keeps its own walls). Metadata normalisation keeps the model's noise-inflated
+    std. The checkpoints record where the weights came from.
 
     resume=True continues from the newest checkpoint in run_dir with its saved settings (the
     `config` argument must then be None or differ only in train.steps, to train for longer):
@@ -361,6 +362,8 @@ def train(
         isinstance(time_limit, (int, float)) and math.isfinite(time_limit) and time_limit > 0
     ):
         raise ValueError(f"time_limit must be a positive number of seconds, got {time_limit!r}")
+    if init_from is not None and resume:
+        raise ValueError("--init-from starts a new run; --resume continues one: pass one")
     started = time.perf_counter()
     run_dir = Path(run_dir)
     rank, world, local_rank = _distributed()
@@ -399,8 +402,6 @@ def train(
         raise ValueError(f"{run_dir} already holds checkpoints; pass --resume or another --out")
     initial: dict[str, Any] | None = None
     if init_from is not None:
-        if resume:
-            raise ValueError("--init-from starts a new run; --resume continues one: pass one")
         initial = load_checkpoint(choose_checkpoint(model_location(init_from)))
         config = _fine_tuning_config(config, from_dict(Config, initial["config"]), init_from)
     elif checkpoint is not None:
