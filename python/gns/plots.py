@@ -1,5 +1,5 @@
 """The figures of `gns report`: error against run time, error over time, the fronts of the sand
-over time, rollout animations.
+over time, rollout animations (3D from two sides: front x-y and top x-z).
 
 Drawn with matplotlib's Agg canvas on figures that are never registered with pyplot, so
 nothing here touches a global backend or needs a display; animations are assembled by Pillow
@@ -29,6 +29,8 @@ from gns.files import atomic_file
 __all__ = [
     "RolloutFigure",
     "Series",
+    "VIEWS_3D",
+    "VIEWS_3D_TEXT",
     "animation",
     "animation_frames",
     "diverged_frame",
@@ -302,15 +304,17 @@ def front_over_time(
     return figure
 
 
-def _limits(
-    truth: np.ndarray, predicted: np.ndarray, bounds: Sequence[Sequence[float]] | None
-) -> list[tuple[float, float]]:
-    """x and y limits: the box when known, else what the ground truth covers, with a margin."""
+def _box(truth: np.ndarray, bounds: Sequence[Sequence[float]] | None) -> list[tuple[float, float]]:
+    """(lo, hi) of every axis of truth (T, N, D): the box when known, else what the ground
+    truth covers."""
     if bounds is not None:
-        box = [(float(lo), float(hi)) for lo, hi in list(bounds)[:2]]
-    else:
-        lo, hi = truth[..., :2].min(axis=(0, 1)), truth[..., :2].max(axis=(0, 1))
-        box = [(float(a), float(b)) for a, b in zip(lo, hi, strict=True)]
+        return [(float(lo), float(hi)) for lo, hi in list(bounds)[: truth.shape[-1]]]
+    lo, hi = truth.min(axis=(0, 1)), truth.max(axis=(0, 1))
+    return [(float(a), float(b)) for a, b in zip(lo, hi, strict=True)]
+
+
+def _limits(box: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Axis limits around the box, with a margin."""
     return [(lo - 0.05 * (hi - lo), hi + 0.05 * (hi - lo)) for lo, hi in box]
 
 
@@ -321,11 +325,25 @@ def diverged_frame(positions: np.ndarray) -> int | None:
     return int(bad[0]) if len(bad) else None
 
 
+# The two views of 3D positions, side by side in each panel of an animation: (title, axis
+# drawn across, axis drawn upward). y is up (gravity along -y): the front view looks along -z;
+# the top view looks down along -y, so with x running rightward as in the front view, z grows
+# downward (its vertical axis is flipped).
+VIEWS_3D = (("front (x-y)", 0, 1), ("top (x-z, from above)", 0, 2))
+# What the report says the animation of 3D data shows.
+VIEWS_3D_TEXT = "front (x-y, y up) and top (x-z, seen from above)"
+
+
 class RolloutFigure:
     """The animation's figure: ground truth and prediction side by side, coloured by particle
     type. draw(t) shows frame t. A prediction that diverged (non-finite from frame k on) is
     shown up to frame k - 1; from frame k its panel keeps that last state, faded, under
-    "diverged at frame k", rather than going blank."""
+    "diverged at frame k", rather than going blank.
+
+    2D positions (and the x-y of more than 3 axes) get one view per panel; 3D positions two,
+    side by side (VIEWS_3D): front (x-y) and top (x-z), each with the box's bounds as its
+    ticks, so the figure is twice as wide. views: per panel (truth, prediction), each view's
+    scatter and the (across, upward) axes it draws; scatters: each panel's first view."""
 
     def __init__(
         self,
@@ -341,54 +359,108 @@ class RolloutFigure:
         self.first_predicted, self.dt = first_predicted, dt
         self.diverged_at = diverged_frame(predicted)
         colours, legend = type_colours(particle_type)
-        self.figure = Figure(figsize=(8, 4.3), dpi=80)
+        three = truth.shape[2] == 3
+        self.figure = Figure(figsize=(16 if three else 8, 4.3), dpi=80)
         self.canvas = FigureCanvasAgg(self.figure)
-        axes = self.figure.subplots(1, 2)
-        limits = _limits(truth, predicted, bounds)
+        box = _box(truth, bounds)
+        # The notice goes over the prediction's panel: its axes in 2D, its pair of views in 3D.
+        panels, over = (self._panels_3d if three else self._panels_2d)(titles, box)
         size = float(np.clip(3000 / max(1, truth.shape[1]), 0.5, 12))
-        self.scatters = []
-        for ax, title in zip(axes, titles, strict=True):
-            ax.set_xlim(*limits[0])
-            ax.set_ylim(*limits[1])
-            ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            ax.set_title(title, fontsize=10)
-            self.scatters.append(
-                ax.scatter(truth[0, :, 0], truth[0, :, 1], s=size, c=colours, lw=0)
-            )
+        self.views: list[list[tuple[Any, tuple[int, int]]]] = [
+            [
+                (ax.scatter(truth[0, :, a], truth[0, :, b], s=size, c=colours, lw=0), (a, b))
+                for ax, (a, b) in panel
+            ]
+            for panel in panels
+        ]
+        first = panels[0][0][0]
         for t, colour in legend.items():
-            axes[0].scatter([], [], s=20, c=colour, label=TYPE_NAMES.get(t, f"type {t}"))
-        axes[0].legend(loc="upper right", fontsize=7, markerscale=1.0)
-        self.notice = axes[1].text(
+            first.scatter([], [], s=20, c=colour, label=TYPE_NAMES.get(t, f"type {t}"))
+        first.legend(loc="upper right", fontsize=7, markerscale=1.0)
+        self.notice = self.figure.text(
             0.5,
             0.5,
             "",
-            transform=axes[1].transAxes,
+            transform=over,
             ha="center",
             va="center",
             fontsize=13,
             color="#d62728",
             fontweight="bold",
         )
-        self.figure.subplots_adjust(left=0.02, right=0.98, top=0.92, bottom=0.08, wspace=0.05)
+        if not three:
+            self.figure.subplots_adjust(left=0.02, right=0.98, top=0.92, bottom=0.08, wspace=0.05)
         self.caption = self.figure.text(0.5, 0.02, "", ha="center", fontsize=9)
+
+    @property
+    def scatters(self) -> list[Any]:
+        """The scatter of each panel's first view: [truth, prediction]."""
+        return [panel[0][0] for panel in self.views]
+
+    def _panels_2d(
+        self, titles: tuple[str, str], box: Sequence[tuple[float, float]]
+    ) -> tuple[list[list[tuple[Any, tuple[int, int]]]], Any]:
+        """One x-y axes per panel, without ticks; and the prediction's axes' transform."""
+        limits = _limits(box)
+        panels = []
+        for ax, title in zip(self.figure.subplots(1, 2), titles, strict=True):
+            ax.set_xlim(*limits[0])
+            ax.set_ylim(*limits[1])
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(title, fontsize=10)
+            panels.append([(ax, (0, 1))])
+        return panels, panels[1][0][0].transAxes
+
+    def _panels_3d(
+        self, titles: tuple[str, str], box: Sequence[tuple[float, float]]
+    ) -> tuple[list[list[tuple[Any, tuple[int, int]]]], Any]:
+        """Per panel, a subfigure titled with the panel's title holding the VIEWS_3D side by
+        side, each axes labelled and ticked at the box's bounds (which show the direction of
+        the top view's flipped z); and the prediction's subfigure's transform."""
+        limits = _limits(box)
+        panels = []
+        subfigures = np.asarray(self.figure.subfigures(1, 2, wspace=0.0))
+        for subfigure, title in zip(subfigures, titles, strict=True):
+            subfigure.suptitle(title, fontsize=10, y=0.97)
+            views = []
+            for ax, (name, a, b) in zip(subfigure.subplots(1, 2), VIEWS_3D, strict=True):
+                ax.set_xlim(*limits[a])
+                # The top view's z grows downward: seen from above, with x to the right.
+                ax.set_ylim(*(limits[b][::-1] if b == 2 else limits[b]))
+                ax.set_aspect("equal")
+                ax.set_xticks(box[a], [f"{v:g}" for v in box[a]], fontsize=7)
+                ax.set_yticks(box[b], [f"{v:g}" for v in box[b]], fontsize=7)
+                ax.set_xlabel("xyz"[a], fontsize=8, labelpad=-6)
+                ax.set_ylabel("xyz"[b], fontsize=8, labelpad=-10)
+                ax.set_title(name, fontsize=9)
+                views.append((ax, (a, b)))
+            subfigure.subplots_adjust(left=0.05, right=0.97, top=0.86, bottom=0.1, wspace=0.14)
+            panels.append(views)
+        # A rule between the panels: four axes in a row would read as four of one kind.
+        self.figure.add_artist(
+            Line2D([0.5, 0.5], [0.1, 0.97], transform=self.figure.transFigure, color="#bbbbbb")
+        )
+        return panels, subfigures[1].transSubfigure
 
     def draw(self, t: int) -> Image.Image:
         """Frame t as an RGB image."""
-        truth, prediction = self.scatters
-        truth.set_offsets(self.truth[t, :, :2])
+        truth, prediction = self.views
+        for scatter, axes in truth:
+            scatter.set_offsets(self.truth[t][:, axes])
         stop = self.diverged_at
         if stop is None or t < stop:
-            prediction.set_offsets(self.predicted[t, :, :2])
-            prediction.set_alpha(None)
+            shown, alpha = self.predicted[t], None
             self.notice.set_text("")
         else:
             # Diverged at frame 0 would leave nothing finite to keep: then only the notice.
-            kept = self.predicted[stop - 1, :, :2] if stop > 0 else np.empty((0, 2))
-            prediction.set_offsets(kept)
-            prediction.set_alpha(0.25)
+            shown = self.predicted[stop - 1] if stop > 0 else self.predicted[:0, 0]
+            alpha = 0.25
             self.notice.set_text(f"diverged at frame {stop}")
+        for scatter, axes in prediction:
+            scatter.set_offsets(shown[:, axes])
+            scatter.set_alpha(alpha)
         phase = "given (history)" if t < self.first_predicted else "predicted"
         when = f"  t = {t * self.dt:.3f} s" if self.dt else ""
         self.caption.set_text(f"frame {t}{when}  ({phase})")
@@ -475,9 +547,11 @@ def animation(
     """Ground truth and prediction side by side, coloured by particle type, as a GIF (and an
     MP4 when mp4_path is given and ffmpeg exists). truth and predicted: (T, N, D) whole
     sequences (history included: frames before `first_predicted` are marked as given); 3D is
-    shown as its x-y projection. A prediction that diverged (NaN from some frame on) is shown
-    up to there, then marked as diverged (see RolloutFigure). Frames: see animation_frames.
-    Returns None, or why the MP4 was not written."""
+    shown from two sides, front (x-y) and top (x-z), in each panel (see RolloutFigure), in a
+    GIF twice as wide as 2D's. bounds: the box, (lo, hi) per axis (default: what the truth
+    covers), which sets every view's limits. A prediction that diverged (NaN from some frame
+    on) is shown up to there, then marked as diverged (see RolloutFigure). Frames: see
+    animation_frames. Returns None, or why the MP4 was not written."""
     truth, predicted = np.asarray(truth), np.asarray(predicted)
     if truth.ndim != 3 or truth.shape != predicted.shape or truth.shape[2] < 2:
         raise ValueError(

@@ -386,6 +386,7 @@ def report(
             "trajectories": indices,
             "particles": sorted({t.n_particles for t in items}),
             "frames": first.num_frames,
+            "dim": first.dim,
             "history": history,
             "horizons": list(horizons),
             "steps": steps,

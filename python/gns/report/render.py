@@ -259,14 +259,13 @@ def _write_media(
         say("animation")
         gif = rollout_path(out, split, index, suffix=".gif")
         mp4 = gif.with_suffix(".mp4")
-        projection = " (x-y projection)" if trajectory.dim == 3 else ""
         why_not = animation(
             truth,
             whole,
             trajectory.particle_type,
             gif,
             bounds=bounds,
-            titles=(f"ground truth{projection}", f"{label}{projection}"),
+            titles=("ground truth", label),
             first_predicted=history,
             dt=dt,
             max_frames=animation_frames,
@@ -439,6 +438,12 @@ def _rest_lines(context: dict[str, Any]) -> list[str]:
     ]
 
 
+def _views_sentence() -> str:
+    from gns.plots import VIEWS_3D_TEXT
+
+    return f"Each panel shows the 3D positions from two sides: {VIEWS_3D_TEXT}."
+
+
 def _title(context: dict[str, Any]) -> str:
     return f"Error against run time: {context['dataset']}, {context['split']} split"
 
@@ -481,6 +486,8 @@ def _markdown_report(
             f"![ground truth and prediction]({_relative(files['gif'], out)})",
             "",
         ]
+        if context["dim"] == 3:
+            lines += [_views_sentence(), ""]
         if "mp4" in files:
             lines += [f"[MP4]({_relative(files['mp4'], out)})", ""]
     if "vtk_truth" in files:
@@ -528,6 +535,8 @@ def _html_report(
         for key in ("error_over_time", "fronts", "gif")
         if key in files
     )
+    if "gif" in files and context["dim"] == 3:
+        images += f"<p>{e(_views_sentence())}</p>"
     if any(row.rest is not None for row in rows):
         images += "<h2>Rest test</h2>" + table(_rest_table(rows))
     return (
