@@ -1,4 +1,4 @@
-"""Speed of the reference simulator (gns.mpm, 2D MLS-MPM in Rust) and calibration of the presets.
+"""Speed of the reference simulator (gns.mpm, MLS-MPM in Rust) and calibration of the presets.
 
     python benches/mpm.py [--quick] [--threads 1 2 auto] [--busy] [--frames 10] [--warmup 3]
     python benches/mpm.py --calibrate [--trajectories 16] [--workers 1]
@@ -6,7 +6,9 @@
 Speed: a dam break, one block 0.4 wide and 0.5 high in the bottom-left corner of the walls
 [0.1, 0.9]^2, of water or of sand, at 4 particles per cell. The particle count is set by
 refining the grid (about 1k, 2k, 8k particles: grid 35, 50, 100), as a finer simulation of the
-same scene would be; the substep count grows with it through the CFL bound. Per row: wall-clock
+same scene would be; the substep count grows with it through the CFL bound. In 3D the same dam
+break in a corner of the walls [0.1, 0.9]^3, a block 0.3 x 0.4 x 0.3 at 8 particles per cell,
+of water, sand or goop (about 2.3k, 4.5k, 9.4k particles: grid 20, 25, 32). Per row: wall-clock
 ms per frame (median over --frames frames after --warmup frames; perf_counter in Rust around
 each frame), substeps per frame (mean over the timed frames) and ns per particle-substep. Each
 thread count runs in its own subprocess with RAYON_NUM_THREADS set, because rayon's global pool
@@ -35,6 +37,11 @@ import numpy as np
 SIZES = {1000: 35, 2000: 50, 8000: 100}  # particles: grid (dam break block at 4 per cell)
 QUICK_SIZES = {300: 20, 1000: 35}
 MATERIALS = ("water", "sand")
+# 3D: particles: grid of the 0.3 x 0.4 x 0.3 block at 8 per cell (grid >= 20 keeps the walls
+# at 0.1 two cells inside the domain, as the simulator requires).
+SIZES_3D = {2300: 20, 4500: 25, 9400: 32}
+QUICK_SIZES_3D = {2300: 20}
+MATERIALS_3D = ("water", "sand", "goop")
 # Per-frame statistics of the paper's data, from the design's calibration table.
 PAPER = {
     "waterdrop": ("WaterDrop", (1.40e-3, 1.31e-3), (6.6e-5, 8.0e-5)),
@@ -65,10 +72,14 @@ def parse_args() -> argparse.Namespace:
 # ---------------------------------------------------------------------------------------- speed
 
 
-def dam_break(material: str, grid: int):
-    from gns.mpm import Block, MpmScene, Sand, Water
+def dam_break(material: str, grid: int, dim: int = 2):
+    from gns.mpm import Block, Goop, MpmScene, Sand, Water
 
-    block = Block(Water() if material == "water" else Sand(), lower=(0.1, 0.1), size=(0.4, 0.5))
+    kind = {"water": Water, "sand": Sand, "goop": Goop}[material]()
+    if dim == 3:
+        block = Block(kind, lower=(0.1, 0.1, 0.1), size=(0.3, 0.4, 0.3))
+        return MpmScene([block], grid=grid, particles_per_cell=8.0)
+    block = Block(kind, lower=(0.1, 0.1), size=(0.4, 0.5))
     return MpmScene([block], grid=grid, particles_per_cell=4.0)
 
 
@@ -77,7 +88,7 @@ def run_cases(cases: list[dict]) -> None:
     from gns.mpm import simulate
 
     for case in cases:
-        scene = dam_break(case["material"], case["grid"])
+        scene = dam_break(case["material"], case["grid"], case["dim"])
         result = simulate(scene, case["warmup"] + case["frames"] + 1)
         seconds = result.seconds[case["warmup"] :]
         substeps = result.substeps[case["warmup"] :].astype(float)
@@ -93,10 +104,13 @@ def speed(args: argparse.Namespace) -> None:
     sizes = QUICK_SIZES if args.quick else SIZES
     frames = args.frames or (3 if args.quick else 10)
     warmup = args.warmup if args.warmup is not None else (1 if args.quick else 3)
+    sizes_3d = QUICK_SIZES_3D if args.quick else SIZES_3D
+    tables = {2: (MATERIALS, list(sizes.values())), 3: (MATERIALS_3D, list(sizes_3d.values()))}
     cases = [
-        {"material": m, "grid": grid, "frames": frames, "warmup": warmup}
-        for m in MATERIALS
-        for grid in sizes.values()
+        {"dim": dim, "material": m, "grid": grid, "frames": frames, "warmup": warmup}
+        for dim, (materials, grids) in tables.items()
+        for m in materials
+        for grid in grids
     ]
     rows = []
     # Another program holding a core, as on a user's busy machine.
@@ -121,27 +135,33 @@ def speed(args: argparse.Namespace) -> None:
             spinner.kill()
             spinner.wait()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    print(
-        f"MLS-MPM dam break (block 0.4 x 0.5, 4 particles per cell), frame dt 2.5 ms; "
-        f"median of {frames} frames after {warmup}; {os.cpu_count()} CPUs, load {load:.1f}"
-        + ("; one core busy with another process" if args.busy else "")
-    )
-    header = (
-        f"{'material':<9} {'particles':>9} {'grid':>5} {'threads':>7} {'ms/frame':>9} "
-        f"{'substeps':>8} {'ns/(p*substep)':>14} {'speed-up':>8}"
-    )
-    print(header)
-    base = {(r["material"], r["grid"]): r["ms_per_frame"] for r in rows if r["threads"] == "1"}
-    for material in MATERIALS:
-        for grid in sizes.values():
-            for r in (r for r in rows if r["material"] == material and r["grid"] == grid):
-                one = base.get((material, grid))
-                gain = f"{one / r['ms_per_frame']:.2f}" if one else "-"
-                print(
-                    f"{material:<9} {r['particles']:>9} {grid:>5} {r['threads']:>7} "
-                    f"{r['ms_per_frame']:>9.2f} {r['substeps']:>8.1f} "
-                    f"{r['ns_per_particle_substep']:>14.1f} {gain:>8}"
-                )
+    scenes = {
+        2: "2D dam break (block 0.4 x 0.5, 4 particles per cell)",
+        3: "3D dam break (block 0.3 x 0.4 x 0.3, 8 particles per cell)",
+    }
+    for dim, (materials, grids) in tables.items():
+        print(
+            f"MLS-MPM {scenes[dim]}, frame dt 2.5 ms; median of {frames} frames after "
+            f"{warmup}; {os.cpu_count()} CPUs, load {load:.1f}"
+            + ("; one core busy with another process" if args.busy else "")
+        )
+        header = (
+            f"{'material':<9} {'particles':>9} {'grid':>5} {'threads':>7} {'ms/frame':>9} "
+            f"{'substeps':>8} {'ns/(p*substep)':>14} {'speed-up':>8}"
+        )
+        print(header)
+        ours = [r for r in rows if r["dim"] == dim]
+        base = {(r["material"], r["grid"]): r["ms_per_frame"] for r in ours if r["threads"] == "1"}
+        for material in materials:
+            for grid in grids:
+                for r in (r for r in ours if r["material"] == material and r["grid"] == grid):
+                    one = base.get((material, grid))
+                    gain = f"{one / r['ms_per_frame']:.2f}" if one else "-"
+                    print(
+                        f"{material:<9} {r['particles']:>9} {grid:>5} {r['threads']:>7} "
+                        f"{r['ms_per_frame']:>9.2f} {r['substeps']:>8.1f} "
+                        f"{r['ns_per_particle_substep']:>14.1f} {gain:>8}"
+                    )
 
 
 # ---------------------------------------------------------------------------------- calibration

@@ -6,7 +6,7 @@
 //!   sparse or very non-uniform clouds (`graph/kdtree.rs`)
 //! - [`walls`]: clipped distances to box walls and to obstacle shapes (parry)
 //! - [`integrate`]: the semi-implicit Euler update
-//! - [`mpm`]: the reference simulator (2D MLS-MPM) that makes ground truth
+//! - [`mpm`]: the reference simulator (MLS-MPM in 2D and 3D, rigid bodies) that makes ground truth
 
 // Per-axis loops index several per-axis arrays at once; an index reads clearer than zips.
 #![allow(clippy::needless_range_loop)]

@@ -436,7 +436,7 @@ fn euler_step(
 
 /// One material from Python: (model, density, parameters) with model "water" (bulk_modulus),
 /// "sand" (youngs_modulus, poisson_ratio, friction_angle_deg), "goop" (youngs_modulus,
-/// poisson_ratio, yield_stress) or "obstacle" (none).
+/// poisson_ratio, yield_stress), "obstacle" (none) or "rigid" (none: one rigid body).
 fn mpm_material(
     index: usize,
     (model, density, params): (String, f64, Vec<f64>),
@@ -444,10 +444,11 @@ fn mpm_material(
     let want = match model.as_str() {
         "water" => 1,
         "sand" | "goop" => 3,
-        "obstacle" => 0,
+        "obstacle" | "rigid" => 0,
         other => {
             return Err(PyValueError::new_err(format!(
-                "materials[{index}]: model must be 'water', 'sand', 'goop' or 'obstacle', got {other:?}"
+                "materials[{index}]: model must be 'water', 'sand', 'goop', 'obstacle' or \
+                 'rigid', got {other:?}"
             )))
         }
     };
@@ -471,6 +472,7 @@ fn mpm_material(
             poisson_ratio: params[1],
             yield_stress: params[2],
         },
+        "rigid" => mpm::Model::Rigid,
         _ => mpm::Model::Obstacle,
     };
     Ok(mpm::Material { density, model })
@@ -478,8 +480,9 @@ fn mpm_material(
 
 /// mpm_simulate(positions, velocities, material, materials, particle_volume, frames, *, grid,
 /// bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps, progress=None,
-/// threads=None) -> (positions (frames, N, 2) float32, seconds (frames - 1,), substeps
-/// (frames - 1,)). progress(frame) after every frame; threads(seconds) after every frame,
+/// threads=None) -> (positions (frames, N, D) float32, seconds (frames - 1,), substeps
+/// (frames - 1,)). D (2 or 3) is the width of positions; bounds holds D pairs [lo, hi] and
+/// gravity D values. progress(frame) after every frame; threads(seconds) after every frame,
 /// returning 1 to run the next frame on one thread, anything else for all.
 #[pyfunction]
 #[pyo3(signature = (positions, velocities, material, materials, particle_volume, frames, *,
@@ -495,10 +498,10 @@ fn mpm_simulate(
     particle_volume: f64,
     frames: usize,
     grid: usize,
-    bounds: [[f64; 2]; 2],
+    bounds: Vec<Vec<f64>>,
     wall: &str,
     wall_friction: f64,
-    gravity: [f64; 2],
+    gravity: Vec<f64>,
     frame_dt: f64,
     cfl: f64,
     max_substeps: usize,
@@ -520,74 +523,142 @@ fn mpm_simulate(
             )))
         }
     };
-    let settings = mpm::Settings {
+    let dim = positions.shape()[1];
+    for (name, a) in [("positions", &positions), ("velocities", &velocities)] {
+        if !matches!(a.shape()[1], 2 | 3) || a.shape()[1] != dim {
+            return Err(PyValueError::new_err(format!(
+                "{name} must have shape (N, 2) or (N, 3), positions and velocities alike; got \
+                 {:?} and {:?}",
+                positions.shape(),
+                velocities.shape()
+            )));
+        }
+    }
+    let run = MpmRun {
+        materials,
+        wall,
         grid,
         bounds,
-        wall,
         gravity,
         frame_dt,
         cfl,
         max_substeps,
+        positions: slice(&positions)?,
+        velocities: slice(&velocities)?,
+        material: material
+            .as_slice()
+            .map_err(|e| PyValueError::new_err(format!("material must be contiguous: {e}")))?,
+        particle_volume,
+        frames,
     };
-    for (name, a) in [("positions", &positions), ("velocities", &velocities)] {
-        if a.shape()[1] != 2 {
-            return Err(PyValueError::new_err(format!(
-                "{name} must have shape (N, 2), got {:?}",
-                a.shape()
-            )));
-        }
+    match dim {
+        2 => run.simulate::<2>(py, progress, threads),
+        _ => run.simulate::<3>(py, progress, threads),
     }
-    let (x, v) = (slice(&positions)?, slice(&velocities)?);
-    let ids = material
-        .as_slice()
-        .map_err(|e| PyValueError::new_err(format!("material must be contiguous: {e}")))?;
-    let n = ids.len();
-    // A Python exception from the progress callback (e.g. KeyboardInterrupt) is re-raised as is.
-    let mut raised: Option<PyErr> = None;
-    let result = py.detach(|| {
-        mpm::simulate(
-            &settings,
-            &materials,
-            x,
-            v,
-            ids,
-            particle_volume,
-            frames,
-            |frame, seconds| {
-                Python::attach(|py| {
-                    let call = match &progress {
-                        Some(f) => f.call1(py, (frame,)).map(|_| ()),
-                        None => py.check_signals(),
-                    };
-                    let next = call.and_then(|()| match &threads {
-                        Some(f) => f.call1(py, (seconds,))?.extract::<i64>(py),
-                        None => Ok(0),
-                    });
-                    match next {
-                        Ok(1) => Ok(mpm::Threads::One),
-                        Ok(_) => Ok(mpm::Threads::All),
-                        Err(e) => {
-                            raised = Some(e);
-                            Err(Error::Value("stopped by a callback".into()))
+}
+
+/// mpm_simulate's inputs, converted; `simulate::<D>` checks the D-sized settings and runs.
+struct MpmRun<'a> {
+    materials: Vec<mpm::Material>,
+    wall: mpm::Wall,
+    grid: usize,
+    bounds: Vec<Vec<f64>>,
+    gravity: Vec<f64>,
+    frame_dt: f64,
+    cfl: f64,
+    max_substeps: usize,
+    positions: &'a [f64],
+    velocities: &'a [f64],
+    material: &'a [u32],
+    particle_volume: f64,
+    frames: usize,
+}
+
+impl MpmRun<'_> {
+    fn simulate<const D: usize>(
+        self,
+        py: Python<'_>,
+        progress: Option<Py<PyAny>>,
+        threads: Option<Py<PyAny>>,
+    ) -> PyResult<Py<PyAny>>
+    where
+        mpm::Dim<D>: mpm::Space<D>,
+    {
+        let pairs = self.bounds.iter().all(|b| b.len() == 2);
+        let bounds: [[f64; 2]; D] = match (pairs, <[Vec<f64>; D]>::try_from(self.bounds.clone())) {
+            (true, Ok(b)) => b.map(|pair| [pair[0], pair[1]]),
+            _ => {
+                return Err(PyValueError::new_err(format!(
+                    "bounds must be {D} pairs [lo, hi], one per axis of positions (N, {D}); got \
+                     {:?}",
+                    self.bounds
+                )))
+            }
+        };
+        let gravity = <[f64; D]>::try_from(self.gravity.as_slice()).map_err(|_| {
+            PyValueError::new_err(format!(
+                "gravity must have {D} values, one per axis of positions (N, {D}); got {:?}",
+                self.gravity
+            ))
+        })?;
+        let settings = mpm::Settings::<D> {
+            grid: self.grid,
+            bounds,
+            wall: self.wall,
+            gravity,
+            frame_dt: self.frame_dt,
+            cfl: self.cfl,
+            max_substeps: self.max_substeps,
+        };
+        let n = self.material.len();
+        let frames = self.frames;
+        // A Python exception from the progress callback (e.g. KeyboardInterrupt) is re-raised as is.
+        let mut raised: Option<PyErr> = None;
+        let result = py.detach(|| {
+            mpm::simulate(
+                &settings,
+                &self.materials,
+                self.positions,
+                self.velocities,
+                self.material,
+                self.particle_volume,
+                frames,
+                |frame, seconds| {
+                    Python::attach(|py| {
+                        let call = match &progress {
+                            Some(f) => f.call1(py, (frame,)).map(|_| ()),
+                            None => py.check_signals(),
+                        };
+                        let next = call.and_then(|()| match &threads {
+                            Some(f) => f.call1(py, (seconds,))?.extract::<i64>(py),
+                            None => Ok(0),
+                        });
+                        match next {
+                            Ok(1) => Ok(mpm::Threads::One),
+                            Ok(_) => Ok(mpm::Threads::All),
+                            Err(e) => {
+                                raised = Some(e);
+                                Err(Error::Value("stopped by a callback".into()))
+                            }
                         }
-                    }
-                })
-            },
-        )
-    });
-    if let Some(err) = raised {
-        return Err(err);
+                    })
+                },
+            )
+        });
+        if let Some(err) = raised {
+            return Err(err);
+        }
+        let out = result.map_err(to_py)?;
+        let steps = out.seconds.len();
+        let frames_array = PyArray1::from_vec(py, out.positions).reshape([frames, n, D])?;
+        let parts = [
+            frames_array.into_any(),
+            PyArray1::from_vec(py, out.seconds).into_any(),
+            PyArray1::from_vec(py, out.substeps).into_any(),
+        ];
+        debug_assert_eq!(steps + 1, frames);
+        Ok(PyTuple::new(py, parts)?.into_any().unbind())
     }
-    let out = result.map_err(to_py)?;
-    let steps = out.seconds.len();
-    let frames_array = PyArray1::from_vec(py, out.positions).reshape([frames, n, 2])?;
-    let parts = [
-        frames_array.into_any(),
-        PyArray1::from_vec(py, out.seconds).into_any(),
-        PyArray1::from_vec(py, out.substeps).into_any(),
-    ];
-    debug_assert_eq!(steps + 1, frames);
-    Ok(PyTuple::new(py, parts)?.into_any().unbind())
 }
 
 #[pymodule]

@@ -1,7 +1,7 @@
-"""The reference simulator (2D MLS-MPM in the Rust core), for ground truth and for timing.
+"""The reference simulator (MLS-MPM in 2D and 3D in the Rust core), for ground truth and timing.
 
 A scene is blocks of material on a lattice plus static obstacles, inside the walls `bounds` of
-the [0, 1]^2 domain:
+the [0, 1]^D domain:
 
     scene = MpmScene([Block(Sand(friction_angle_deg=30), lower=(0.4, 0.1), size=(0.2, 0.2))])
     result = simulate(scene, frames=350)
@@ -9,15 +9,24 @@ the [0, 1]^2 domain:
     result.seconds          # wall-clock seconds per simulated frame
     result.to_trajectory()  # a gns.data.Trajectory with DeepMind particle types
 
+A scene is 3D when its blocks are (lower, size and velocity of 3 values); bounds and gravity
+default to [0.1, 0.9] on every axis and 9.81 m/s^2 down the y axis in both. A BOXBATH-style
+scene, a rigid box dropped into water:
+
+    scene = MpmScene([Block(Water(), (0.1, 0.1, 0.1), (0.8, 0.2, 0.8)),
+                      Block(Rigid(), (0.4, 0.5, 0.4), (0.15, 0.15, 0.15))], grid=32)
+    simulate(scene, frames=200).positions  # (200, N, 3)
+
 Accuracy against cost is set by `grid` (cells per unit length), `particles_per_cell` (the
-lattice spacing is dx / sqrt(particles_per_cell)) and `cfl` (substeps). Instead of the lattice,
+lattice spacing is dx / particles_per_cell^(1/D)) and `cfl` (substeps). Instead of the lattice,
 the blocks can be filled with given points, e.g. another simulator's first frame, so that
 particle i of the result is particle i of that data:
 
     result = simulate(scene, frames=350, positions=their_frame_0)
 
 Units are SI: metres, seconds, kg/m^3, Pa. Particle types follow the DeepMind datasets (water 5,
-sand 6, goop 7, obstacles 3, kinematic).
+sand 6, goop 7, obstacles 3, kinematic; rigid bodies 0, the type of "rigid solids" in DeepMind's
+render_rollout.py and of BOXBATH's box).
 
 This package is the reference simulator, kept apart from the learned model; its submodule
 gns.mpm.generate draws scenes from presets and writes them as datasets (`gns generate`).
@@ -42,6 +51,7 @@ __all__ = [
     "Goop",
     "MpmResult",
     "MpmScene",
+    "Rigid",
     "Sand",
     "Segment",
     "Water",
@@ -49,6 +59,10 @@ __all__ = [
 ]
 
 OBSTACLE_TYPE = 3
+# DeepMind's id for rigid solids (learning_to_simulate/render_rollout.py: 0 "Rigid solids";
+# ../shared/design/formats.md): BOXBATH's box. It means nothing else in their data (3
+# kinematic, 5 water, 6 sand, 7 goop), and a dataset of ours with a box reads like theirs.
+RIGID_TYPE = 0
 
 
 @dataclass(frozen=True)
@@ -93,17 +107,50 @@ class Goop:
         return ("goop", self.density, params)
 
 
-Material = Water | Sand | Goop
+@dataclass(frozen=True)
+class Rigid:
+    """A rigid body (BOXBATH's box): every Block of it is its own body, whose particles scatter
+    mass and momentum to the grid like any material (no stress) and are then moved together,
+    by the body's linear and angular velocity, keeping their shape exactly. The default
+    density, half the water's, floats."""
+
+    density: float = 500.0
+    particle_type = RIGID_TYPE
+
+    def core(self) -> tuple[str, float, list[float]]:
+        return ("rigid", self.density, [])
+
+
+Material = Water | Sand | Goop | Rigid
 
 
 @dataclass(frozen=True)
 class Block:
-    """A rectangle [lower, lower + size] filled with `material`, moving at `velocity` (m/s)."""
+    """A box [lower, lower + size] filled with `material`, moving at `velocity` (m/s; default
+    at rest). 2D or 3D: lower, size and velocity have 2 values each, or 3."""
 
     material: Material
-    lower: tuple[float, float]
-    size: tuple[float, float]
-    velocity: tuple[float, float] = (0.0, 0.0)
+    lower: tuple[float, ...]
+    size: tuple[float, ...]
+    velocity: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        dim = len(self.lower)
+        if dim not in (2, 3):
+            raise ValueError(f"Block.lower must have 2 values (2D) or 3 (3D), got {self.lower}")
+        if self.velocity is None:
+            object.__setattr__(self, "velocity", (0.0,) * dim)
+        for name in ("size", "velocity"):
+            value = getattr(self, name)
+            if len(value) != dim:
+                raise ValueError(
+                    f"Block.{name} = {tuple(value)} has {len(value)} values but Block.lower = "
+                    f"{tuple(self.lower)} has {dim}: a block is 2D or 3D on every count"
+                )
+
+    @property
+    def dim(self) -> int:
+        return len(self.lower)
 
 
 @dataclass(frozen=True)
@@ -118,15 +165,18 @@ class Segment:
 
 @dataclass(frozen=True)
 class MpmScene:
-    """What to simulate and how finely. wall: "coulomb" (friction wall_friction), "slip" or
-    "sticky". jitter: random offset of each lattice point, as a fraction of the spacing."""
+    """What to simulate and how finely. The scene is 2D or 3D as its blocks are (2D without
+    blocks; obstacles, Segments, are 2D only). bounds: the walls, one (lo, hi) per axis
+    (default (0.1, 0.9) on each); gravity: one value per axis (default -9.81 m/s^2 along y).
+    wall: "coulomb" (friction wall_friction), "slip" or "sticky". jitter: random offset of
+    each lattice point, as a fraction of the spacing."""
 
     blocks: Sequence[Block]
     obstacles: Sequence[Segment] = ()
-    bounds: tuple[tuple[float, float], tuple[float, float]] = ((0.1, 0.9), (0.1, 0.9))
+    bounds: Sequence[tuple[float, float]] | None = None
     wall: str = "coulomb"
     wall_friction: float = 0.5
-    gravity: tuple[float, float] = (0.0, -9.81)
+    gravity: Sequence[float] | None = None
     frame_dt: float = 0.0025
     grid: int = 64
     particles_per_cell: float = 4.0
@@ -135,16 +185,52 @@ class MpmScene:
     jitter: float = 0.0
     context: Sequence[float] | None = field(default=None)
 
+    def __post_init__(self) -> None:
+        dims = {block.dim for block in self.blocks}
+        if len(dims) > 1:
+            described = ", ".join(f"block {k}: {b.dim}D" for k, b in enumerate(self.blocks))
+            raise ValueError(f"the blocks mix 2D and 3D ({described}); a scene is one or the other")
+        dim = dims.pop() if dims else 2
+        if self.obstacles and dim != 2:
+            raise ValueError(
+                f"obstacles (Segment) are 2D, but this scene's blocks are {dim}D; a 3D scene "
+                "cannot have obstacles yet"
+            )
+        if self.bounds is None:
+            object.__setattr__(self, "bounds", ((0.1, 0.9),) * dim)
+        if self.gravity is None:
+            object.__setattr__(self, "gravity", (0.0, -9.81, 0.0)[:dim])
+        assert self.bounds is not None and self.gravity is not None
+        if len(self.bounds) != dim or any(len(pair) != 2 for pair in self.bounds):
+            raise ValueError(
+                f"MpmScene.bounds = {self.bounds} must be {dim} pairs (lo, hi), one per axis of "
+                f"the scene's {dim}D blocks"
+            )
+        if len(self.gravity) != dim:
+            raise ValueError(
+                f"MpmScene.gravity = {self.gravity} must have {dim} values, one per axis of the "
+                f"scene's {dim}D blocks"
+            )
+
+    @property
+    def dim(self) -> int:
+        """2 or 3, the blocks' dimension (2 without blocks)."""
+        return self.blocks[0].dim if self.blocks else 2
+
     @property
     def spacing(self) -> float:
+        """The lattice spacing: dx / particles_per_cell^(1/D)."""
         if not self.particles_per_cell > 0:
             raise ValueError(f"particles_per_cell must be > 0, got {self.particles_per_cell}")
-        return 1.0 / self.grid / math.sqrt(self.particles_per_cell)
+        if self.dim == 2:
+            return 1.0 / self.grid / math.sqrt(self.particles_per_cell)
+        # np.cbrt, not ** (1 / 3), so that 8 and 27 per cell give spacings dx / 2 and dx / 3.
+        return 1.0 / self.grid / float(np.cbrt(self.particles_per_cell))
 
 
 @dataclass(frozen=True)
 class MpmResult:
-    positions: np.ndarray  # (frames, N, 2) float32
+    positions: np.ndarray  # (frames, N, D) float32
     particle_type: np.ndarray  # (N,) int64
     seconds: np.ndarray  # (frames - 1,) wall-clock seconds per frame
     substeps: np.ndarray  # (frames - 1,) substeps per frame
@@ -163,8 +249,7 @@ def lattice(lower: Sequence[float], size: Sequence[float], spacing: float) -> np
     axes = [
         lo + (np.arange(c) + 0.5) * (s / c) for lo, s, c in zip(lower, size, counts, strict=True)
     ]
-    xs, ys = np.meshgrid(*axes, indexing="ij")
-    return np.stack([xs.ravel(), ys.ravel()], axis=1)
+    return np.stack([x.ravel() for x in np.meshgrid(*axes, indexing="ij")], axis=1)
 
 
 def _segment_points(segment: Segment, spacing: float) -> np.ndarray:
@@ -182,7 +267,7 @@ def _segment_points(segment: Segment, spacing: float) -> np.ndarray:
 
 
 def _block_of_each(blocks: Sequence[Block], points: np.ndarray, margin: float) -> np.ndarray:
-    """(N,) the index of the block each point lies in: the nearest rectangle (distance 0
+    """(N,) the index of the block each point lies in: the nearest box (distance 0
     inside; the first of equally near ones), which must be at most `margin` away. ValueError
     naming the first point that no block holds, and the blocks."""
     if not blocks:
@@ -210,7 +295,7 @@ def _block_of_each(blocks: Sequence[Block], points: np.ndarray, margin: float) -
 
 
 def _given_volume(blocks: Sequence[Block], index: np.ndarray) -> float:
-    """One particle's volume when the blocks hold given points: the blocks' area over the
+    """One particle's volume when the blocks hold given points: the blocks' volume over the
     number of points (the core takes one volume for all). ValueError when a block holds no
     point, or when the blocks are filled more than 10% more densely than one another (one
     volume would then give their particles the wrong mass)."""
@@ -219,9 +304,10 @@ def _given_volume(blocks: Sequence[Block], index: np.ndarray) -> float:
     if (empty := np.flatnonzero(counts == 0)).size:
         raise ValueError(f"block {int(empty[0])} ({blocks[int(empty[0])]}) holds no given point")
     each = areas / counts
+    what = "area" if len(blocks[0].size) == 2 else "volume"
     if each.max() > 1.1 * each.min():
         raise ValueError(
-            f"the blocks hold their given points at different densities (area per point "
+            f"the blocks hold their given points at different densities ({what} per point "
             f"{', '.join(f'{a:.3g}' for a in each)}); one particle volume cannot fit them all"
         )
     return float(areas.sum() / counts.sum())
@@ -238,39 +324,51 @@ def particles(
     materials), particle_type, the list of distinct materials and particle_volume.
 
     Without `positions` each block is a lattice of spacing scene.spacing (jittered by
-    scene.jitter) and a particle's volume is spacing^2. With `positions` (N, 2), the points
+    scene.jitter) and a particle's volume is spacing^D. With `positions` (N, D), the points
     are the particles, in their order, each with the material and velocity of the block whose
-    rectangle holds it (or lies within `margin` of it; ValueError naming the point and the
-    blocks if none does), and the volume is the blocks' area over the number of points: the
-    data's, whatever the grid. Obstacles follow the blocks in both cases."""
+    box holds it (or lies within `margin` of it; ValueError naming the point and the blocks
+    if none does), and the volume is the blocks' volume over the number of points: the
+    data's, whatever the grid. Obstacles follow the blocks in both cases. Equal materials
+    share an entry of materials, except Rigid: each rigid block is its own body, so its own
+    entry."""
     spacing = scene.spacing
+    dim = scene.dim
     rng = np.random.default_rng(seed)
     materials: list[Material] = []
+    material_of: list[int] = []  # per block, its index into materials
     for block in scene.blocks:
-        if block.material not in materials:
+        if isinstance(block.material, Rigid) or block.material not in materials:
             materials.append(block.material)
+        material_of.append(
+            len(materials) - 1
+            if isinstance(block.material, Rigid)
+            else materials.index(block.material)
+        )
     x, v, mat, types = [], [], [], []
     if positions is not None:
         points = np.asarray(positions, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 2 or not len(points):
-            raise ValueError(f"given positions must be (N, 2) with N > 0, got {points.shape}")
+        if points.ndim != 2 or points.shape[1] != dim or not len(points):
+            raise ValueError(
+                f"given positions must be (N, {dim}) with N > 0 for the scene's {dim}D blocks, "
+                f"got {points.shape}"
+            )
         if not np.isfinite(points).all():
             raise ValueError("given positions hold non-finite values")
         block_of = _block_of_each(scene.blocks, points, margin)
         volume = _given_volume(scene.blocks, block_of)
         x.append(points)
         v.append(np.array([scene.blocks[k].velocity for k in block_of], dtype=np.float64))
-        mat.append(np.array([materials.index(scene.blocks[k].material) for k in block_of]))
+        mat.append(np.array([material_of[k] for k in block_of]))
         types.append(np.array([scene.blocks[k].material.particle_type for k in block_of]))
     else:
-        volume = spacing**2
-        for block in scene.blocks:
+        volume = spacing**dim
+        for k, block in enumerate(scene.blocks):
             points = lattice(block.lower, block.size, spacing)
             if scene.jitter:
                 points = points + rng.uniform(-0.5, 0.5, points.shape) * scene.jitter * spacing
             x.append(points)
             v.append(np.tile(np.asarray(block.velocity, float), (len(points), 1)))
-            mat.append(np.full(len(points), materials.index(block.material)))
+            mat.append(np.full(len(points), material_of[k]))
             types.append(np.full(len(points), block.material.particle_type))
     if scene.obstacles:
         index = len(materials)
@@ -317,8 +415,8 @@ def simulate(
     progress: Callable[[int], object] | None = None,
 ) -> MpmResult:
     """Run `scene` for `frames` frames (frame 0 the initial state), its blocks filled with the
-    lattice or with the given `positions` (N, 2) (see `particles`; `margin`: how far outside
-    its block's rectangle a given point may lie). A run that produces NaN,
+    lattice or with the given `positions` (N, D) (see `particles`; `margin`: how far outside
+    its block's box a given point may lie). A run that produces NaN,
     loses a particle out of the domain or needs more than max_substeps in a frame raises
     ValueError naming the frame. `progress(frame)` is called after every frame.
 
@@ -338,10 +436,10 @@ def simulate(
         start["particle_volume"],
         frames,
         grid=scene.grid,
-        bounds=[list(b) for b in scene.bounds],
+        bounds=[list(b) for b in scene.bounds or ()],
         wall=scene.wall,
         wall_friction=scene.wall_friction,
-        gravity=list(scene.gravity),
+        gravity=list(scene.gravity or ()),
         frame_dt=scene.frame_dt,
         cfl=scene.cfl,
         max_substeps=scene.max_substeps,
