@@ -16,6 +16,7 @@ from gns.cli import main
 from gns.data import open_dataset
 from gns.data.validate import validate_dataset
 from gns.mpm import generate as gen
+from gns.mpm import presets
 
 G_DT2 = 9.81 * 0.0025**2  # free fall per frame^2
 
@@ -53,22 +54,28 @@ def reference(tmp_path_factory):
 # ------------------------------------------------------------------------------------- presets
 
 
+def preset_scene_dim(preset):
+    return presets.preset_scene(preset, 0)[0].dim
+
+
 def rects(scene):
     return [(np.array(b.lower), np.array(b.size)) for b in scene.blocks]
 
 
 def assert_apart_inside_the_walls(boxes):
     for lower, size in boxes:
-        assert np.all(lower >= 0.1 + gen.MARGIN - 1e-12)
-        assert np.all(lower + size <= 0.9 - gen.MARGIN + 1e-12)
+        assert np.all(lower >= 0.1 + presets.MARGIN - 1e-12)
+        assert np.all(lower + size <= 0.9 - presets.MARGIN + 1e-12)
     for i, (lo_a, size_a) in enumerate(boxes):
         for lo_b, size_b in boxes[i + 1 :]:
-            apart = (lo_a + size_a + gen.GAP <= lo_b) | (lo_b + size_b + gen.GAP <= lo_a)
+            apart = (lo_a + size_a + presets.GAP <= lo_b) | (lo_b + size_b + presets.GAP <= lo_a)
             assert apart.any(), f"blocks {lo_a, size_a} and {lo_b, size_b} overlap"
 
 
+# The 3D presets are tested in test_generate_3d.py.
+PRESETS_2D = sorted(p for p in presets.PRESETS if preset_scene_dim(p) == 2)
 # sand-taichi keeps sand2d-taichi's own resolution and layout (test below).
-SHARED_RESOLUTION = sorted(set(gen.PRESETS) - {"sand-taichi"})
+SHARED_RESOLUTION = sorted(set(PRESETS_2D) - {"sand-taichi"})
 
 
 @pytest.mark.parametrize("preset", SHARED_RESOLUTION)
@@ -85,9 +92,9 @@ def test_presets_place_blocks_apart_inside_the_walls(preset):
             assert 0.1 <= size[0] <= 0.3 and 0.15 <= size[1] <= 0.35
             assert block.velocity == (0.0, 0.0) and isinstance(block.material, mpm.Water)
         else:
-            speed = gen.SAND_SPEED if preset in ("sand", "continuous") else gen.SPEED
+            speed = presets.SAND_SPEED if preset in ("sand", "continuous") else presets.SPEED
             assert all(max(map(abs, b.velocity)) <= speed for b in scene.blocks)
-            assert all(np.all(size <= gen.SIDE[1]) for _, size in boxes)
+            assert all(np.all(size <= presets.SIDE[1]) for _, size in boxes)
         if preset == "multimaterial":
             kinds = [type(b.material) for b in scene.blocks]
             assert len(set(kinds)) == len(kinds)
@@ -131,15 +138,15 @@ def test_sand_taichi_covers_every_scene_of_sand2d_taichi():
     """The real dataset's blocks (corner, velocity, friction angle) lie in the preset's ranges,
     and our lattice fills its 0.2 x 0.2 block as densely as Taichi did (656 particles)."""
     manifest = json.loads((SAND2D / "manifest.json").read_text())
-    lo = 0.1 + gen.MARGIN / 4
-    hi = 0.9 - gen.MARGIN / 4 - gen.TAICHI_SIDE
+    lo = 0.1 + presets.MARGIN / 4
+    hi = 0.9 - presets.MARGIN / 4 - presets.TAICHI_SIDE
     for entry in manifest["trajectories"]:
         x, y, w, h = entry["cube"]
-        assert (w, h) == (gen.TAICHI_SIDE, gen.TAICHI_SIDE)
+        assert (w, h) == (presets.TAICHI_SIDE, presets.TAICHI_SIDE)
         # Taichi's corners span 0.1009-0.697, ours 0.105-0.695: within MARGIN / 4 of either end.
-        slack = gen.MARGIN / 4
+        slack = presets.MARGIN / 4
         assert lo - slack <= x <= hi + slack and lo - slack <= y <= hi + slack, entry["file"]
-        assert max(map(abs, entry["initial_velocity"])) <= gen.TAICHI_SPEED
+        assert max(map(abs, entry["initial_velocity"])) <= presets.TAICHI_SPEED
         assert 20 <= entry["friction_angle_deg"] <= 45
     scene = gen.preset_scene("sand-taichi", 0)[0]
     ours = len(mpm.particles(scene)["positions"])
@@ -148,7 +155,7 @@ def test_sand_taichi_covers_every_scene_of_sand2d_taichi():
 
 def test_place_blocks_shrinks_blocks_that_cannot_fit():
     rng = np.random.default_rng(0)
-    placed = gen.place_blocks(rng, np.full((3, 2), 0.5))
+    placed = presets.place_blocks(rng, np.full((3, 2), 0.5))
     sizes = np.array([size for _, size in placed])
     assert np.allclose(sizes, sizes[0])  # shrunk together, in steps of 10%
     steps = np.log(sizes[0, 0] / 0.5) / np.log(0.9)
@@ -158,13 +165,13 @@ def test_place_blocks_shrinks_blocks_that_cannot_fit():
 
 def test_trajectory_seeds_depend_on_seed_split_index_and_draw_only():
     states = {
-        key: gen.trajectory_seed(*key).generate_state(2).tobytes()
+        key: presets.trajectory_seed(*key).generate_state(2).tobytes()
         for key in [(0, "train", 0, 0), (1, "train", 0, 0), (0, "valid", 0, 0)]
         + [(0, "train", 1, 0), (0, "train", 0, 1)]
     }
     assert len(set(states.values())) == len(states)
-    assert gen.trajectory_seed(0, "train", 3, 1).generate_state(2).tobytes() == (
-        gen.trajectory_seed(0, "train", 3, 1).generate_state(2).tobytes()
+    assert presets.trajectory_seed(0, "train", 3, 1).generate_state(2).tobytes() == (
+        presets.trajectory_seed(0, "train", 3, 1).generate_state(2).tobytes()
     )
 
 
@@ -359,7 +366,7 @@ def test_an_existing_dataset_is_never_overwritten(tmp_path):
         tiny(tmp_path / "d")
 
 
-@pytest.mark.parametrize("preset", sorted(gen.PRESETS))
+@pytest.mark.parametrize("preset", PRESETS_2D)
 def test_generated_data_passes_validate_with_particles_at_the_walls(tmp_path, preset):
     """160 frames (0.4 s) take a thrown block (or a falling drop) into a wall, where the
     simulator lets particles sink up to a cell past MpmScene.bounds: the metadata's bounds are

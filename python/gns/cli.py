@@ -116,7 +116,7 @@ def existing_dir(text: str) -> Path:
 
 
 def preset_name(text: str) -> str:
-    """The argparse type of --preset: a scene preset of gns.mpm.generate."""
+    """The argparse type of --preset: a scene preset of gns.mpm.presets."""
     from gns.mpm.generate import PRESETS
 
     if text not in PRESETS:
@@ -272,7 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen = sub.add_parser(
         "generate",
         help="simulate a dataset with the reference MPM simulator (DeepMind layout)",
-        description=f"Presets: {', '.join(PRESETS)} (see gns.mpm.generate). The dataset depends "
+        description=f"Presets: {', '.join(PRESETS)} (see gns.mpm.presets). The dataset depends "
         "on the arguments and --seed only, not on --workers. An interrupted run is resumed by "
         "repeating the command: finished trajectories are kept in OUT.partial/ until the "
         "dataset is complete.",
@@ -295,6 +295,14 @@ def build_parser() -> argparse.ArgumentParser:
         # Three frames are the fewest with an acceleration, as gns.mpm.generate requires.
         type=whole_number(3),
         help="frames per trajectory, frame 0 included (default: preset's)",
+    )
+    gen.add_argument(
+        "--scale",
+        type=positive_number(),
+        default=1.0,
+        help="about this many times the preset's particles: the grid and the lattice finer by "
+        "scale^(1/D), the connectivity radius with them (default 1; about 5 gives the paper's "
+        "3D sizes)",
     )
     gen.add_argument("--quiet", action="store_true", help="no progress line")
     gen.set_defaults(handler=run_generate)
@@ -680,6 +688,7 @@ def run_generate(args: argparse.Namespace) -> int:
         workers=args.workers if args.workers is not None else os.cpu_count() or 1,
         frames=args.frames,
         progress=not args.quiet,
+        scale=args.scale,
     )
     counts = ", ".join(f"{n} {split}" for split, n in summary.counts.items())
     reused = f", {summary.reused} from an interrupted run" if summary.reused else ""

@@ -2,23 +2,8 @@
 
     generate("sand", "data/sand", n_train=100, n_valid=10, n_test=10, seed=0, workers=2)
 
-Presets (the paper's scenes, docs/reference-simulator.md) are functions rng -> (MpmScene,
-frames), `frames` counting frame 0, so a preset's sequence_length is the paper's (WaterDrop 1000,
-Sand 320, Goop 400, WaterRamps 600, MultiMaterial 1000):
-  waterdrop      one block of water at rest, width U(0.1, 0.3), height U(0.15, 0.35)
-  water, sand, goop
-                 1-3 non-overlapping blocks of side U(0.15, 0.3), velocity U(-2.5, 2.5) m/s per
-                 axis (sand U(-4.5, 4.5): see SAND_SPEED)
-  multimaterial  2-3 blocks of distinct materials among water, sand and goop
-  ramps          water or sand blocks among 1-3 static ramps (kinematic particles, type 3)
-  continuous     sand as above whose friction angle is U(20, 45) degrees per trajectory, stored
-                 as the global feature tan(angle) (DeepMind's step_context)
-  sand-taichi    sand2d-taichi's scenes: one 0.2 x 0.2 sand block at rest or thrown at up to
-                 1 m/s per axis, friction U(20, 45) degrees as in continuous, 350 frames, at
-                 that dataset's own resolution (grid 64, 4 particles a cell)
-All but sand-taichi share one resolution (RESOLUTION: lattice spacing 0.01, grid dx 0.025),
-chosen with `sand`'s speed so that waterdrop and sand match the paper's per-frame statistics
-within a factor 1.5 (benches/mpm.py --calibrate).
+Presets (the paper's scenes in 2D and 3D, drawn by gns.mpm.presets) are functions
+rng -> (MpmScene, frames); `scale` multiplies a scene's particles by about that factor.
 
 Metadata bounds are where the simulator stops the particles (see `confinement`), the innermost
 grid nodes of its walls, not the walls' nominal position MpmScene.bounds.
@@ -43,7 +28,7 @@ import shutil
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,7 +41,8 @@ from gns.data.metadata import DEFAULT_KINEMATIC_TYPES, Metadata
 from gns.data.stats import StatisticsAccumulator
 from gns.data.trajectory import Trajectory
 from gns.files import atomic_file, atomic_folder, claim_folder
-from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water
+from gns.mpm import MpmScene
+from gns.mpm.presets import PRESETS, SPLITS, check_scale, connectivity_radius, preset_scene
 
 __all__ = [
     "PRESETS",
@@ -65,262 +51,20 @@ __all__ = [
     "confinement",
     "generate",
     "preset_scene",
-    "trajectory_seed",
 ]
 
-SPLITS = ("train", "valid", "test")
-# The paper's 2D connectivity radius: about 7 neighbours at the lattice spacing 0.01 below.
-CONNECTIVITY_RADIUS = 0.015
 # Draws of one trajectory before giving up: a preset that fails this often is broken, and
 # silently skipping it would bias the dataset towards the scenes that happen to be stable.
 MAX_DRAWS = 8
 # Bump when the meaning of the cached files or of a seed changes, so old partial runs are refused.
 CACHE_FORMAT = 1
 
-# Where blocks may start: the walls (MpmScene's default bounds) less a margin, so no particle
-# starts on a wall node, and a gap between blocks so that they start apart.
-WALLS = ((0.1, 0.9), (0.1, 0.9))
-MARGIN = 0.02
-GAP = 0.02
-SIDE = (0.15, 0.3)
-SPEED = 2.5
-# Sand blocks are thrown faster than the design's U(-2.5, 2.5): at 2.5 m/s their per-frame
-# acceleration std was 0.47-0.57 of the paper's Sand data, at 4.5 m/s 0.87-0.95 (velocity std
-# 1.1 of it); see benches/mpm.py --calibrate.
-SAND_SPEED = 4.5
-# Every preset's resolution: lattice spacing 0.01 (1e4 particles per unit area, as the design
-# asks) on a grid of dx = 0.025, coarser than MpmScene's default 1 / 64. Grid resolution sets how
-# sharply particles stop at a wall, and the per-frame acceleration std of WaterDrop is mostly
-# (~90%) the 1% of samples at the splash: at dx = 1/64 it was 1.9x the paper's, at dx = 0.02
-# 1.5-1.6x, at dx = 0.025 1.1-1.3x. The grid also has to be the same in every preset, so that
-# datasets mixing materials see one numerical behaviour.
-RESOLUTION: dict[str, Any] = {"grid": 40, "particles_per_cell": 6.25}
-
-Placement = tuple[tuple[float, float], tuple[float, float]]  # (lower, size)
-Preset = Callable[[np.random.Generator], tuple[MpmScene, int]]
-
-
-# ----------------------------------------------------------------------------------- placement
-
-
-def _overlaps(a: Placement, b: Placement, gap: float) -> bool:
-    (ax, ay), (aw, ah) = a
-    (bx, by), (bw, bh) = b
-    return ax < bx + bw + gap and bx < ax + aw + gap and ay < by + bh + gap and by < ay + ah + gap
-
-
-def _inside(points: np.ndarray, rect: Placement, gap: float) -> bool:
-    (x, y), (w, h) = rect
-    px, py = points[:, 0], points[:, 1]
-    return bool(np.any((px > x - gap) & (px < x + w + gap) & (py > y - gap) & (py < y + h + gap)))
-
-
-def place_blocks(
-    rng: np.random.Generator,
-    sizes: np.ndarray,
-    keep_out: np.ndarray | None = None,
-    keep_out_gap: float = GAP,
-    attempts: int = 200,
-) -> list[Placement]:
-    """Non-overlapping rectangles of the given (k, 2) sizes inside the walls, GAP apart and
-    `keep_out_gap` clear of the `keep_out` points. Sizes shrink by 10% until they fit."""
-    scale = 1.0
-    for _ in range(30):
-        placed: list[Placement] = []
-        for w, h in sizes * scale:
-            hi_x, hi_y = WALLS[0][1] - MARGIN - w, WALLS[1][1] - MARGIN - h
-            lo_x, lo_y = WALLS[0][0] + MARGIN, WALLS[1][0] + MARGIN
-            if hi_x <= lo_x or hi_y <= lo_y:
-                break
-            for _ in range(attempts):
-                rect = ((rng.uniform(lo_x, hi_x), rng.uniform(lo_y, hi_y)), (w, h))
-                if any(_overlaps(rect, other, GAP) for other in placed):
-                    continue
-                if keep_out is not None and _inside(keep_out, rect, keep_out_gap):
-                    continue
-                placed.append(rect)
-                break
-            else:
-                break
-        if len(placed) == len(sizes):
-            return [((float(x), float(y)), (float(w), float(h))) for (x, y), (w, h) in placed]
-        scale *= 0.9
-    raise ValueError(f"cannot place blocks of sizes {sizes.tolist()} without overlap")
-
-
-def _blocks(
-    rng: np.random.Generator,
-    materials: Sequence[mpm.Material],
-    speed: float,
-    keep_out: np.ndarray | None = None,
-    gap: float = GAP,
-) -> list[Block]:
-    """Blocks of side U(SIDE) of the given materials, velocity U(-speed, speed) per axis."""
-    sizes = rng.uniform(SIDE[0], SIDE[1], (len(materials), 2))
-    rects = place_blocks(rng, sizes, keep_out, gap)
-    velocities = rng.uniform(-speed, speed, (len(materials), 2))
-    return [
-        Block(m, lower=lower, size=size, velocity=(float(v[0]), float(v[1])))
-        for m, (lower, size), v in zip(materials, rects, velocities, strict=True)
-    ]
-
-
-def _scene(blocks: Sequence[Block], **settings: Any) -> MpmScene:
-    return MpmScene(blocks, **RESOLUTION, **settings)
-
-
-def _count(rng: np.random.Generator, lo: int = 1, hi: int = 3) -> int:
-    return int(rng.integers(lo, hi + 1))
-
-
-# ------------------------------------------------------------------------------------- presets
-
-
-def waterdrop(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """One block of water at rest, falling from a random place: WaterDrop."""
-    w, h = rng.uniform(0.1, 0.3), rng.uniform(0.15, 0.35)
-    x = rng.uniform(WALLS[0][0] + MARGIN, WALLS[0][1] - MARGIN - w)
-    y = rng.uniform(WALLS[1][0] + MARGIN, WALLS[1][1] - MARGIN - h)
-    block = Block(Water(), lower=(float(x), float(y)), size=(float(w), float(h)))
-    return _scene([block]), 1001
-
-
-def water(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """1-3 blocks of water thrown in random directions."""
-    return _scene(_blocks(rng, [Water()] * _count(rng), SPEED)), 1001
-
-
-def sand(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """1-3 blocks of sand (friction angle 30 degrees) thrown in random directions: Sand."""
-    return _scene(_blocks(rng, [Sand()] * _count(rng), SAND_SPEED)), 321
-
-
-def goop(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """1-3 blocks of goop thrown in random directions: Goop."""
-    return _scene(_blocks(rng, [Goop()] * _count(rng), SPEED)), 401
-
-
-def multimaterial(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """2-3 blocks, each of a different material among water, sand and goop: MultiMaterial."""
-    kinds: list[mpm.Material] = [Water(), Sand(), Goop()]
-    chosen = rng.permutation(3)[: _count(rng, 2, 3)]
-    return _scene(_blocks(rng, [kinds[i] for i in chosen], SPEED)), 1001
-
-
-def random_ramps(rng: np.random.Generator, count: int, spacing: float) -> list[Segment]:
-    """Static ramps of length U(0.15, 0.35) tilted U(-40, 40) degrees, 0.05 apart from each other
-    and clear of the walls (the obstacle particles' rows go below the segment, by `spacing`)."""
-    segments: list[Segment] = []
-    lines: list[np.ndarray] = []
-    clearance = MARGIN + 2 * spacing
-    lo, hi = np.array(WALLS)[:, 0] + clearance, np.array(WALLS)[:, 1] - clearance
-    for _ in range(200 * count):
-        if len(segments) == count:
-            break
-        length = rng.uniform(0.15, 0.35)
-        angle = math.radians(rng.uniform(-40.0, 40.0))
-        half = 0.5 * length * np.array([math.cos(angle), math.sin(angle)])
-        centre = rng.uniform(lo, hi)
-        start, end = centre - half, centre + half
-        if np.any(np.minimum(start, end) < lo) or np.any(np.maximum(start, end) > hi):
-            continue
-        line = start + np.linspace(0, 1, 50)[:, None] * (end - start)
-        if any(
-            np.min(np.linalg.norm(line[:, None] - other[None], axis=2)) < 0.05 for other in lines
-        ):
-            continue
-        segments.append(Segment((float(start[0]), float(start[1])), (float(end[0]), float(end[1]))))
-        lines.append(line)
-    if len(segments) < count:
-        raise ValueError(f"cannot place {count} ramps apart from each other")
-    return segments
-
-
-def ramps(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """Water or sand blocks among 1-3 static ramps: WaterRamps (and its sand twin)."""
-    empty = _scene([])
-    segments = random_ramps(rng, _count(rng), empty.spacing)
-    material: mpm.Material = Water() if rng.random() < 0.5 else Sand()
-    # Obstacle particles make the 3 x 3 grid nodes around them sticky: blocks keep clear of
-    # those nodes too, or they would start stuck.
-    probe = mpm.particles(_scene([], obstacles=segments))["positions"]
-    gap = GAP + 2 / empty.grid
-    blocks = _blocks(rng, [material] * _count(rng), SPEED, probe, gap)
-    return _scene(blocks, obstacles=segments), 601
-
-
-def continuous(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """Sand with the friction angle U(20, 45) degrees per trajectory, given to the model as
-    tan(angle), the Mohr-Coulomb friction coefficient (as sand2d-taichi's material_property)."""
-    angle = float(rng.uniform(20.0, 45.0))
-    blocks = _blocks(rng, [Sand(friction_angle_deg=angle)] * _count(rng), SAND_SPEED)
-    return _scene(blocks, context=[math.tan(math.radians(angle))]), 321
-
-
-# sand2d-taichi's setup (Taichi-Elements as geoelements ran it; the defaults of MpmScene): one
-# 0.2 x 0.2 block anywhere in the walls, at rest or thrown at U(-1, 1) m/s per axis (its 12
-# thrown runs reach 0.95), 350 frames 2.5 ms apart.
-TAICHI_SIDE = 0.2
-TAICHI_SPEED = 1.0
-TAICHI_FRAMES = 350
-
-
-def sand_taichi(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """One 0.2 x 0.2 block of sand, friction angle U(20, 45) degrees given as tan(angle) (as
-    `continuous`), half at rest and half thrown, at sand2d-taichi's resolution (grid 64, 4
-    particles a cell, spacing 1/128): training data for a model of that dataset."""
-    angle = float(rng.uniform(20.0, 45.0))
-    # 0.005 inside the walls: Taichi's blocks come as close as 0.101.
-    lo, hi = WALLS[0][0] + MARGIN / 4, WALLS[0][1] - MARGIN / 4 - TAICHI_SIDE
-    lower = rng.uniform(lo, hi, 2)
-    thrown = rng.random() < 0.5
-    velocity = rng.uniform(-TAICHI_SPEED, TAICHI_SPEED, 2) if thrown else np.zeros(2)
-    block = Block(
-        Sand(friction_angle_deg=angle),
-        lower=(float(lower[0]), float(lower[1])),
-        size=(TAICHI_SIDE, TAICHI_SIDE),
-        velocity=(float(velocity[0]), float(velocity[1])),
-    )
-    return MpmScene([block], context=[math.tan(math.radians(angle))]), TAICHI_FRAMES
-
-
-PRESETS: dict[str, Preset] = {
-    "waterdrop": waterdrop,
-    "water": water,
-    "sand": sand,
-    "goop": goop,
-    "multimaterial": multimaterial,
-    "ramps": ramps,
-    "continuous": continuous,
-    "sand-taichi": sand_taichi,
-}
-
-
-def trajectory_seed(seed: int, split: str, index: int, draw: int = 0) -> np.random.SeedSequence:
-    """The seed of one draw of one trajectory: a function of these four values only."""
-    return np.random.SeedSequence(seed, spawn_key=(SPLITS.index(split), index, draw))
-
-
-def preset_scene(
-    preset: str, seed: int, split: str = "train", index: int = 0, draw: int = 0
-) -> tuple[MpmScene, int, int]:
-    """(scene, frames, lattice seed) of one draw, exactly as `generate` makes it."""
-    rng = np.random.default_rng(trajectory_seed(seed, split, index, draw))
-    scene, frames = _preset(preset)(rng)
-    return scene, frames, int(rng.integers(2**63))
-
-
-def _preset(name: str) -> Preset:
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; expected one of {sorted(PRESETS)}")
-    return PRESETS[name]
-
 
 def confinement(scene: MpmScene) -> tuple[tuple[float, float], ...]:
     """The box the simulator keeps the particles of `scene` in, per axis: from the innermost
     grid node of the lower wall to that of the upper wall. These are the dataset's bounds.
 
-    MpmScene.bounds is not that box. The simulator (rust/mpm.rs, update_grid) enforces the walls
+    MpmScene.bounds is not that box. The simulator (rust/mpm/solver.rs, update_grid) enforces the walls
     on the grid nodes outside `bounds`, and a particle takes its velocity from the 3 x 3 nodes
     around it (quadratic B-splines), so one that has crossed `bounds` keeps moving with the
     nodes inside until its weights lie on wall nodes only: half a cell past the innermost wall
@@ -442,6 +186,7 @@ def _load(path: Path, index: int) -> tuple[Trajectory, int]:
 def _simulate_one(
     preset: str,
     seed: int,
+    scale: float,
     split: str,
     index: int,
     frames: int | None,
@@ -458,7 +203,7 @@ def _simulate_one(
 
     failures = []
     for draw in range(MAX_DRAWS):
-        scene, preset_frames, lattice_seed = preset_scene(preset, seed, split, index, draw)
+        scene, preset_frames, lattice_seed = preset_scene(preset, seed, split, index, draw, scale)
         try:
             result = mpm.simulate(
                 scene, frames or preset_frames, seed=lattice_seed, progress=per_frame
@@ -477,10 +222,12 @@ def _simulate_one(
 
 
 def _arguments(
-    preset: str, counts: dict[str, int], seed: int, frames: int | None
+    preset: str, counts: dict[str, int], seed: int, frames: int | None, scale: float
 ) -> dict[str, Any]:
     """What a partial run must share with this one for its trajectories to be reused."""
-    return {"format": CACHE_FORMAT, "preset": preset, "seed": seed, "frames": frames, **counts}
+    arguments = {"format": CACHE_FORMAT, "preset": preset, "seed": seed, "frames": frames}
+    # Named only when not 1, so that partial runs from before scale existed stay resumable.
+    return {**arguments, **counts, **({"scale": scale} if scale != 1.0 else {})}
 
 
 def _prepare_work(work: Path, arguments: dict[str, Any]) -> None:
@@ -523,6 +270,7 @@ def generate(
     workers: int = 1,
     frames: int | None = None,
     progress: bool | Callable[[int, int], object] = True,
+    scale: float = 1.0,
 ) -> Summary:
     """Simulate n_train / n_valid / n_test trajectories of `preset` and write the dataset folder
     `out` (metadata.json, {split}.tfrecord; a split of 0 trajectories gets no file).
@@ -531,9 +279,12 @@ def generate(
     (threads, each running one trajectory). frames: frames per trajectory including frame 0
     (default: the preset's). progress: True for a progress line on stderr, or a function called
     as progress(done, total) after every finished trajectory (raising from it stops the run,
-    which a re-run then resumes). Metadata statistics are those of the train split.
+    which a re-run then resumes). scale: about this many times the preset's particles (a
+    finer grid and lattice; gns.mpm.presets). Metadata statistics are those of the train split.
     """
-    _preset(preset)
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; expected one of {sorted(PRESETS)}")
+    scale = check_scale(scale)
     counts = {
         "n_train": _check_count("n_train", n_train, 1),
         "n_valid": _check_count("n_valid", n_valid, 0),
@@ -548,7 +299,7 @@ def generate(
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ValueError(f"{out}: exists and is not an empty folder; choose a new --out")
     work = out.with_name(out.name + ".partial")
-    _prepare_work(work, _arguments(preset, counts, seed, frames))
+    _prepare_work(work, _arguments(preset, counts, seed, frames, scale))
 
     per_split = dict(zip(SPLITS, counts.values(), strict=True))
     meter = _Progress(per_split, frames or preset_scene(preset, seed)[1], progress is True)
@@ -567,7 +318,7 @@ def generate(
     pool = cf.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="gns-generate")
     try:
         pending = {
-            pool.submit(_simulate_one, preset, seed, s, i, frames, work, stop, meter): s
+            pool.submit(_simulate_one, preset, seed, scale, s, i, frames, work, stop, meter): s
             for s, i in todo
         }
         while pending:
@@ -586,7 +337,7 @@ def generate(
         pool.shutdown(wait=True, cancel_futures=True)
         meter.close()
 
-    written, redrawn = _assemble(out, work, preset, per_split, seed)
+    written, redrawn = _assemble(out, work, preset, per_split, seed, scale)
     shutil.rmtree(work, ignore_errors=True)
     return Summary(written, redrawn, meter.reused, time.perf_counter() - meter.started)
 
@@ -597,6 +348,7 @@ def _assemble(
     preset: str,
     per_split: dict[str, int],
     seed: int,
+    scale: float,
 ) -> tuple[dict[str, int], int]:
     """Write the dataset folder from the cached trajectories, atomically; return the
     trajectories written per split and the number of rejected draws behind them."""
@@ -622,17 +374,18 @@ def _assemble(
             written[split] = write_tfrecord(tmp / f"{split}.tfrecord", stream())
         if len(lengths) != 1:
             raise ValueError(f"cached trajectories in {work} differ in length: {sorted(lengths)}")
-        scene = preset_scene(preset, seed)[0]
+        scene = preset_scene(preset, seed, scale=scale)[0]
         metadata = Metadata(
             bounds=confinement(scene),
             sequence_length=lengths.pop() - 1,
-            default_connectivity_radius=CONNECTIVITY_RADIUS,
-            dim=2,
+            default_connectivity_radius=connectivity_radius(preset, scale),
+            dim=scene.dim,
             dt=scene.frame_dt,
             extra={
                 "generator": {
                     "preset": preset,
                     "seed": seed,
+                    **({"scale": scale} if scale != 1.0 else {}),
                     # Which draw each trajectory is (0 unless earlier draws failed).
                     "draws": {s: d for s, d in draws.items() if any(d)},
                 }

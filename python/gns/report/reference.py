@@ -35,7 +35,7 @@ class MpmVariant:
 
     def apply(self, scene: Any) -> Any:
         grid = scene.grid if self.grid is None else self.grid
-        per_cell = scene.particles_per_cell * (scene.grid / grid) ** 2
+        per_cell = scene.particles_per_cell * (scene.grid / grid) ** scene.dim
         cfl = scene.cfl if self.cfl is None else self.cfl
         return dataclasses.replace(scene, grid=grid, particles_per_cell=per_cell, cfl=cfl)
 
@@ -197,7 +197,12 @@ def _generated_runs(
     runs = []
     for index, trajectory in zip(indices, trajectories, strict=True):
         scene, _, lattice_seed = preset_scene(
-            generator["preset"], int(generator["seed"]), split, index, int(draws[index])
+            generator["preset"],
+            int(generator["seed"]),
+            split,
+            index,
+            int(draws[index]),
+            float(generator.get("scale", 1.0)),
         )
         runs.append(_MpmRun(scene, lattice_seed))
         start = mpm.particles(scene, lattice_seed)["positions"].astype(np.float32)
