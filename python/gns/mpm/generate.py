@@ -64,9 +64,9 @@ def confinement(scene: MpmScene) -> tuple[tuple[float, float], ...]:
     """The box the simulator keeps the particles of `scene` in, per axis: from the innermost
     grid node of the lower wall to that of the upper wall. These are the dataset's bounds.
 
-    MpmScene.bounds is not that box. The simulator (rust/mpm/solver.rs, update_grid) enforces the walls
-    on the grid nodes outside `bounds`, and a particle takes its velocity from the 3 x 3 nodes
-    around it (quadratic B-splines), so one that has crossed `bounds` keeps moving with the
+    MpmScene.bounds is not that box. The simulator (rust/mpm/solver.rs, update_grid) enforces
+    the walls on the grid nodes outside `bounds`, and a particle takes its velocity from the 3^D
+    nodes around it (quadratic B-splines), so one that has crossed `bounds` keeps moving with the
     nodes inside until its weights lie on wall nodes only: half a cell past the innermost wall
     node. Thrown sand went 0.027 past `bounds` at dx = 0.025, almost twice the connectivity
     radius `gns validate` allows. From the innermost wall nodes no particle gets farther out
