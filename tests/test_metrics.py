@@ -35,7 +35,7 @@ from gns.distances import (
     sinkhorn,
 )
 from gns.metrics import evaluate_rollout, horizon_mse, mse_over_time, one_step_mse
-from scipy.optimize import linprog
+from scipy.optimize import linear_sum_assignment, linprog
 
 
 def brute_force_ot(x, y):
@@ -253,6 +253,28 @@ def test_distribution_metrics_reject_bad_point_sets(x, y, match):
     for metric in (optimal_transport, mmd, sinkhorn):
         with pytest.raises(ValueError, match=match):
             metric(x, y)
+
+
+def test_rollout_ot_beyond_exact_max_points_is_exact_on_a_fixed_subset():
+    """More particles than exact_max_points: OT of a rigidly shifted rollout is still the
+    squared shift (true of every subset), and it equals brute force (scipy's assignment) on
+    the subset the docstring names: the same seed-0 draw of particles in every frame."""
+    rng = np.random.default_rng(3)
+    truth = rng.random((3, 300, 3))
+    shift = np.array([0.01, -0.02, 0.005])
+    shifted = evaluate_rollout(truth + shift, truth, exact_max_points=100)
+    assert shifted["ot_points"] == 100
+    np.testing.assert_allclose(shifted["ot"], shift @ shift, rtol=1e-9)
+    noisy = truth + 0.03 * rng.standard_normal(truth.shape)
+    result = evaluate_rollout(noisy, truth, exact_max_points=100)
+    subset = np.sort(np.random.default_rng(0).choice(300, 100, replace=False))
+    for t in range(3):
+        a, b = noisy[t, subset], truth[t, subset]
+        cost = ((a[:, None] - b[None]) ** 2).sum(-1)
+        rows, cols = linear_sum_assignment(cost)
+        assert result["ot"][t] == pytest.approx(cost[rows, cols].mean(), rel=1e-12)
+    # At or below the limit every particle counts.
+    assert evaluate_rollout(noisy, truth, exact_max_points=300)["ot_points"] == 300
 
 
 def test_optimal_transport_rejects_an_unknown_method():

@@ -31,6 +31,7 @@ from numpy.typing import ArrayLike
 
 from gns.baselines import constant_velocity_rollout
 from gns.distances import (
+    EXACT_MAX_POINTS,
     OtMethod,
     SinkhornConvergenceError,
     SinkhornResult,
@@ -140,7 +141,7 @@ def evaluate_rollout(
     distribution_every: int = 1,
     bandwidth: float = 0.1,
     ot_method: OtMethod = "auto",
-    exact_max_points: int = 2048,
+    exact_max_points: int = EXACT_MAX_POINTS,
     epsilon: float = 1e-2,
     nonfinite: Nonfinite = "raise",
 ) -> dict[str, Any]:
@@ -152,8 +153,13 @@ def evaluate_rollout(
       "frames": (K,) int64, the frames 0, s, 2s, ... (s = distribution_every) that get the
           distributional metrics, which cost O(N^2) or more per frame;
       "ot": (K,) W2^2 per evaluated frame (`optimal_transport`); "ot_mean": their mean;
+      "ot_points": how many particles OT compared (see below);
       "mmd": (K,) biased MMD^2 per evaluated frame (`mmd`); "mmd_mean": their mean.
-    OT and MMD compare the masked particles of both frames. With nonfinite="inf" a diverged
+    OT and MMD compare the masked particles of both frames. With ot_method "auto" and more
+    masked particles than exact_max_points, OT compares a fixed random subset of that many
+    particles (the same in both frames and in every frame, drawn from seed 0), solved exactly:
+    entropic OT at that size took 58 s a frame against 0.7 s for the exact assignment of
+    2290 particles, and reports mostly its own blur. With nonfinite="inf" a diverged
     frame scores inf for all three metrics (and so do the means that include it). A Sinkhorn
     frame that does not converge raises SinkhornConvergenceError rather than report a guess.
     """
@@ -171,12 +177,20 @@ def evaluate_rollout(
     frames = np.arange(0, pred.shape[0], distribution_every, dtype=np.int64)
     ot = np.full(frames.shape, np.inf)
     discrepancy = np.full(frames.shape, np.inf)
+    counted = int(np.count_nonzero(keep))
+    subset = np.arange(counted)
+    if ot_method == "auto" and counted > exact_max_points:
+        subset = np.sort(np.random.default_rng(0).choice(counted, exact_max_points, replace=False))
     for k, t in enumerate(frames):
         if not finite[t]:
             continue
         a, b = pred[t, keep], truth[t, keep]
         ot[k] = optimal_transport(
-            a, b, method=ot_method, exact_max_points=exact_max_points, epsilon=epsilon
+            a[subset],
+            b[subset],
+            method=ot_method,
+            exact_max_points=exact_max_points,
+            epsilon=epsilon,
         )
         discrepancy[k] = mmd(a, b, bandwidth)
     summary: dict[str, Any] = {"mse": per_frame}
@@ -185,6 +199,7 @@ def evaluate_rollout(
         frames=frames,
         ot=ot,
         ot_mean=float(np.mean(ot)),
+        ot_points=len(subset),
         mmd=discrepancy,
         mmd_mean=float(np.mean(discrepancy)),
     )

@@ -18,6 +18,7 @@ import numpy as np
 
 from gns.data.stride import describe_frame_stride, spacing_text
 from gns.deposit import DEPOSIT_CURVES
+from gns.distances import EXACT_MAX_POINTS
 from gns.files import write_bytes_atomic
 from gns.report.measure import METRICS, TIMING_PARTS, Row, _count
 
@@ -374,9 +375,10 @@ def _method_lines(context: dict[str, Any]) -> list[str]:
         + mpm_start,
         "- MSE: squared position error, mean over the non-kinematic particles and the axes, "
         "then over the first h predicted frames (`@h`; `@full`: all), then over trajectories.",
-        f"- OT (W2^2, exact assignment up to 2048 points) and MMD^2 (Gaussian kernel, "
-        f"bandwidth 0.1): evaluated on one predicted frame in k = {k} only (frames 1, "
-        f"{k + 1}, {2 * k + 1}, ... of the rollout), as they cost O(N^2) or more per frame; "
+        f"- OT (W2^2, an exact assignment; above {EXACT_MAX_POINTS} particles on a fixed random "
+        f"subset of that many) and MMD^2 (Gaussian kernel, bandwidth 0.1): evaluated on one "
+        f"predicted frame in k = {k} only (frames 1, {k + 1}, {2 * k + 1}, ... of the rollout), "
+        "as they cost O(N^2) or more per frame; "
         "`@h` is the mean over the evaluated frames among the first h ("
         + ", ".join(
             f"@{'full' if h is None else h}: {len(range(0, s if h is None else min(h, s), k))}"
