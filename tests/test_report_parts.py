@@ -6,6 +6,7 @@ is in test_report.py."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import xml.etree.ElementTree as ET
@@ -13,6 +14,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 import torch
+from gns import mpm
 from gns.plots import (
     RolloutFigure,
     Series,
@@ -30,6 +32,7 @@ from gns.report import (
     score,
     table_columns,
 )
+from gns.report.reference import _coarsest_grid
 from gns.vtk import write_series
 
 
@@ -114,6 +117,18 @@ def test_horizons_and_mpm_settings_parse():
         MpmVariant(cfl=0.8),
         MpmVariant(grid=24, cfl=0.8),
     ]
+    # A 3D preset at grid 24 whose walls, 0.1 in, need grid 20 at least: auto stops there.
+    assert parse_mpm_variants(["auto"], 24, 0.4, min_grid=20) == [
+        MpmVariant(),
+        MpmVariant(grid=20),
+        MpmVariant(cfl=0.8),
+        MpmVariant(grid=20, cfl=0.8),
+    ]
+    scene = mpm.MpmScene([mpm.Block(mpm.Sand(), (0.3,) * 3, (0.2,) * 3)], grid=24)
+    assert _coarsest_grid(scene) == 20
+    with pytest.raises(ValueError, match="2 dx <= lo"):
+        mpm.simulate(dataclasses.replace(scene, grid=19), frames=2)
+    mpm.simulate(dataclasses.replace(scene, grid=20), frames=2)
     assert parse_mpm_variants(["native", "grid=30,cfl=0.5"], 40, 0.4) == [
         MpmVariant(),
         MpmVariant(grid=30, cfl=0.5),

@@ -45,11 +45,12 @@ class MpmVariant:
 
 
 def parse_mpm_variants(
-    specs: Sequence[str], native_grid: int, native_cfl: float
+    specs: Sequence[str], native_grid: int, native_cfl: float, min_grid: int = 2
 ) -> list[MpmVariant]:
     """MPM settings from the command line: "native", "grid=20", "cfl=0.8", "grid=20,cfl=0.8",
     "auto" (native; 0.6 and 0.5 of the grid; twice the CFL number; 0.6 of the grid with twice
-    the CFL number) or "none" (no MPM rows)."""
+    the CFL number; "auto" takes no grid below `min_grid`, the coarsest the scene's walls allow,
+    and repeats none) or "none" (no MPM rows)."""
     variants: list[MpmVariant] = []
     for spec in specs:
         text = spec.strip().lower()
@@ -61,7 +62,8 @@ def parse_mpm_variants(
             # At half the grid the generated scenes lose particles through the walls (which
             # sit 0.1 from the domain's edge: two cells at grid 20): kept as the honest limit,
             # with 0.6 of the grid as the coarse setting that holds.
-            coarse, half = max(2, round(0.6 * native_grid)), max(2, native_grid // 2)
+            coarse = max(2, min_grid, round(0.6 * native_grid))
+            half = max(2, min_grid, native_grid // 2)
             variants += [
                 MpmVariant(),
                 MpmVariant(grid=coarse),
@@ -92,6 +94,13 @@ def parse_mpm_variants(
                 )
         variants.append(MpmVariant(**settings))
     return list(dict.fromkeys(variants))
+
+
+def _coarsest_grid(scene: Any) -> int:
+    """The fewest cells per unit length the simulator accepts for the scene's walls: they must
+    lie 2 cells inside the domain (3D scenes at grid 24 have 0.6 of it, 14, below their 20)."""
+    margin = min(min(lo, 1.0 - hi) for lo, hi in scene.bounds)
+    return max(2, math.ceil(2.0 / margin - 1e-9))
 
 
 # ------------------------------------------------------------------------------------ scenes
@@ -153,7 +162,7 @@ def _mpm_plan(
         runs, reason = _generated_runs(dataset.metadata, split, trajectories, indices)
     # The settings are checked even when there is nothing to run (against the defaults).
     native = runs[0].scene if runs else mpm.MpmScene([])
-    variants = parse_mpm_variants(specs, native.grid, native.cfl)
+    variants = parse_mpm_variants(specs, native.grid, native.cfl, _coarsest_grid(native))
     if not variants:
         return _MpmPlan([], [])
     if reason is not None:
