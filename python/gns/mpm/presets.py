@@ -112,13 +112,13 @@ def place_blocks(
     `floor_gap` above the floor, axis 1's lower wall), GAP apart and `keep_out_gap` clear of
     the `keep_out` points. Sizes shrink by 10% until they fit. Corners are drawn axis by axis,
     x first."""
-    dim = sizes.shape[1]
-    lo = [w[0] + (floor_gap if a == 1 else MARGIN) for a, w in enumerate(walls[:dim])]
+    walls = walls[: sizes.shape[1]]
+    lo = [w[0] + (floor_gap if a == 1 else MARGIN) for a, w in enumerate(walls)]
     scale = 1.0
     for _ in range(30):
         placed: list[Box] = []
         for size in sizes * scale:
-            hi = [w[1] - MARGIN - s for w, s in zip(walls, size, strict=False)]
+            hi = [w[1] - MARGIN - s for w, s in zip(walls, size, strict=True)]
             if any(h <= low for h, low in zip(hi, lo, strict=True)):
                 break
             for _ in range(attempts):
