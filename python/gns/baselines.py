@@ -11,6 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from gns.metric_inputs import FloatArray, float_array
+from gns.periodic import minimum_image, wrap
 
 __all__ = ["constant_velocity_rollout", "static_rollout"]
 
@@ -68,18 +69,26 @@ def constant_velocity_rollout(
     *,
     kinematic_mask: ArrayLike | None = None,
     ground_truth: ArrayLike | None = None,
+    bounds: ArrayLike | None = None,
+    period: FloatArray | None = None,
 ) -> FloatArray:
     """The reference baseline: every particle keeps its last velocity.
 
     initial_positions: (C + 1, N, D), time-major, most recent last, C >= 1.
-    Returns (num_steps, N, D): x_{t+1} = x_t + v with v = x[-1] - x[-2]. Kinematic particles
+    Returns (num_steps, N, D): x_{t+1} = x_t + v with v = x[-1] - x[-2]. On the periodic axes
+    of `period` (gns.periodic; `bounds` (D, 2) then gives the box) v is the minimum image and
+    the positions are wrapped back into the box, as the data's are. Kinematic particles
     (`kinematic_mask` (N,) bool) take `ground_truth` (num_steps, N, D) instead, as in learned
     rollouts; the two must be given together.
     """
     positions = _baseline_start(initial_positions, num_steps, 2, kinematic_mask, ground_truth)
-    last, velocity = positions[-1], positions[-1] - positions[-2]
+    last, velocity = positions[-1], minimum_image(positions[-1] - positions[-2], period)
     steps = np.arange(1, num_steps + 1, dtype=np.float64)[:, None, None]
     rollout: FloatArray = last[None] + steps * velocity[None]
+    if period is not None:
+        if bounds is None:
+            raise ValueError("constant_velocity_rollout: a period needs the box's bounds")
+        rollout = wrap(rollout, np.asarray(bounds, dtype=np.float64)[:, 0], period)
     return _kinematic_from_truth(rollout, kinematic_mask, ground_truth)
 
 

@@ -101,22 +101,29 @@ def _rows_per_block(columns: int, arrays: int, memory_bytes: int) -> int:
     return max(1, memory_bytes // (8 * arrays * max(columns, 1)))
 
 
-def _squared_distances(a: FloatArray, b: FloatArray) -> FloatArray:
+def _squared_distances(
+    a: FloatArray, b: FloatArray, period: FloatArray | None = None
+) -> FloatArray:
     """|a_i - b_j|^2, (n, m), from coordinate differences: exact zeros for equal points and no
-    cancellation (|a|^2 + |b|^2 - 2 a.b loses everything when points are close and far from 0)."""
+    cancellation (|a|^2 + |b|^2 - 2 a.b loses everything when points are close and far from 0).
+    With a `period` (gns.periodic), the minimum image on its periodic axes: the torus."""
     out = np.zeros((a.shape[0], b.shape[0]))
     for d in range(a.shape[1]):
         diff = a[:, d, None] - b[None, :, d]
+        if period is not None and period[d] > 0:
+            diff -= period[d] * np.round(diff / period[d])
         out += diff * diff
     return out
 
 
-def _blocks(a: FloatArray, b: FloatArray, memory_bytes: int) -> Iterator[tuple[slice, FloatArray]]:
+def _blocks(
+    a: FloatArray, b: FloatArray, memory_bytes: int, period: FloatArray | None = None
+) -> Iterator[tuple[slice, FloatArray]]:
     """Row blocks (rows of a, squared distances (rows, m)) of the a-to-b cost matrix."""
     step = _rows_per_block(b.shape[0], 3, memory_bytes)
     for start in range(0, a.shape[0], step):
         rows = slice(start, min(start + step, a.shape[0]))
-        yield rows, _squared_distances(a[rows], b)
+        yield rows, _squared_distances(a[rows], b, period)
 
 
 # --------------------------------------------------------------------------- optimal transport
@@ -127,9 +134,14 @@ def _assignment_size(n: int, m: int) -> int:
 
 
 def exact_optimal_transport(
-    x: ArrayLike, y: ArrayLike, *, exact_max_points: int = EXACT_MAX_POINTS
+    x: ArrayLike,
+    y: ArrayLike,
+    *,
+    exact_max_points: int = EXACT_MAX_POINTS,
+    period: FloatArray | None = None,
 ) -> float:
-    """Exact W2^2 between the uniform distributions on x (N, D) and y (M, D).
+    """Exact W2^2 between the uniform distributions on x (N, D) and y (M, D) (on the torus of
+    `period` when given, gns.periodic).
 
     Solves an L x L assignment, L = N if N == M else lcm(N, M) (points repeated L/N and L/M
     times); raises ValueError when L > exact_max_points, since the cost matrix takes 8 L^2 bytes
@@ -146,7 +158,7 @@ def exact_optimal_transport(
         )
     if n != m:
         xs, ys = np.repeat(xs, size // n, axis=0), np.repeat(ys, size // m, axis=0)
-    cost = _squared_distances(xs, ys)
+    cost = _squared_distances(xs, ys, period)
     rows, cols = linear_sum_assignment(cost)
     return float(np.mean(cost[rows, cols]))
 
@@ -361,8 +373,10 @@ def optimal_transport(
     max_iterations: int = 10_000,
     tolerance: float = 1e-6,
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
+    period: FloatArray | None = None,
 ) -> float:
-    """Squared 2-Wasserstein distance between the uniform distributions on x (N, D), y (M, D).
+    """Squared 2-Wasserstein distance between the uniform distributions on x (N, D), y (M, D);
+    on the torus of `period` (gns.periodic) with the exact solver only (ValueError otherwise).
 
     method "exact": `exact_optimal_transport` (ValueError if its L x L assignment, L = N for
     N == M else lcm(N, M), exceeds exact_max_points); "sinkhorn": the transport cost of
@@ -374,7 +388,12 @@ def optimal_transport(
     xs, ys = point_pair(x, y)
     small = _assignment_size(xs.shape[0], ys.shape[0]) <= exact_max_points
     if method == "exact" or (method == "auto" and small):
-        return exact_optimal_transport(xs, ys, exact_max_points=exact_max_points)
+        return exact_optimal_transport(xs, ys, exact_max_points=exact_max_points, period=period)
+    if period is not None:
+        raise ValueError(
+            f"optimal transport on a periodic box is exact only: {xs.shape[0]} and "
+            f"{ys.shape[0]} points need more than exact_max_points={exact_max_points}"
+        )
     result = sinkhorn(
         xs,
         ys,
@@ -389,11 +408,17 @@ def optimal_transport(
 # --------------------------------------------------------------------------- MMD
 
 
-def _kernel_sum(a: FloatArray, b: FloatArray, bandwidth: float, memory_bytes: int) -> float:
+def _kernel_sum(
+    a: FloatArray,
+    b: FloatArray,
+    bandwidth: float,
+    memory_bytes: int,
+    period: FloatArray | None = None,
+) -> float:
     """sum_ij exp(-|a_i - b_j|^2 / (2 bandwidth^2)), in row blocks."""
     total = 0.0
     scale = -0.5 / bandwidth**2
-    for _, block in _blocks(a, b, memory_bytes):
+    for _, block in _blocks(a, b, memory_bytes, period):
         block *= scale
         np.exp(block, out=block)
         total += float(block.sum())
@@ -407,9 +432,11 @@ def mmd(
     *,
     unbiased: bool = False,
     memory_bytes: int = DEFAULT_MEMORY_BYTES,
+    period: FloatArray | None = None,
 ) -> float:
     """Squared MMD between point sets x (N, D) and y (M, D) with the Gaussian kernel
-    exp(-|a - b|^2 / (2 bandwidth^2)), bandwidth in position units.
+    exp(-|a - b|^2 / (2 bandwidth^2)), bandwidth in position units; |a - b| the minimum image
+    on the periodic axes of `period` (gns.periodic) when given.
 
     Biased (default): mean k(x, x') + mean k(y, y') - 2 mean k(x, y) over all pairs, diagonals
     included; >= 0 (rounding below 0 is clamped) and exactly 0 when y equals x. Unbiased:
@@ -420,9 +447,9 @@ def mmd(
         raise ValueError(f"bandwidth must be a positive number, got {bandwidth}")
     n, m = int(xs.shape[0]), int(ys.shape[0])
     # The same routine for all three sums, so that y == x gives bit-identical terms and 0.
-    kxx = _kernel_sum(xs, xs, bandwidth, memory_bytes)
-    kyy = _kernel_sum(ys, ys, bandwidth, memory_bytes)
-    kxy = _kernel_sum(xs, ys, bandwidth, memory_bytes) / (n * m)
+    kxx = _kernel_sum(xs, xs, bandwidth, memory_bytes, period)
+    kyy = _kernel_sum(ys, ys, bandwidth, memory_bytes, period)
+    kxy = _kernel_sum(xs, ys, bandwidth, memory_bytes, period) / (n * m)
     if not unbiased:
         return max(0.0, kxx / n**2 + kyy / m**2 - 2 * kxy)
     if n < 2 or m < 2:

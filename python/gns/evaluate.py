@@ -38,6 +38,7 @@ from gns.deposit import (
     ratio_of,
 )
 from gns.metrics import DEFAULT_HORIZONS, evaluate_rollout
+from gns.periodic import period_of
 from gns.rollout import Rollout, RolloutDiverged, rollout
 from gns.simulator import LearnedSimulator
 
@@ -89,14 +90,18 @@ def one_step_errors(
             predicted = simulator.predict_positions(
                 sequence, t["particle_type"], t["n_node"], t["context"], t["material_property"]
             )
+            # Differences as the model takes them: minimum images on periodic axes.
+            last = sequence[:, -1]
             guesses = {
                 "model": predicted,
-                "constant_velocity": 2 * sequence[:, -1] - sequence[:, -2],
-                "static": sequence[:, -1],
+                "constant_velocity": simulator.wrap(
+                    last + simulator.displacement(last, sequence[:, -2])
+                ),
+                "static": last,
             }
             free = ~simulator.kinematic_mask(t["particle_type"])
             for name, guess in guesses.items():
-                error = (guess.double() - truth.double())[free].square().mean()
+                error = simulator.displacement(guess.double(), truth.double())[free].square().mean()
                 sums[name] += float(error)
     finally:
         simulator.train(was_training)
@@ -199,19 +204,18 @@ def _evaluate_one(
     kinematic = np.isin(r.particle_type, r.metadata.get("kinematic_particle_types", [3]))
     free = ~kinematic
     floor = pile_floor(bounds, r.initial_positions[0])
+    period = period_of(bounds, scene["periodic"])
     # The ground truth's deposit, the reference of every ratio, computed once.
     truth_deposit = deposit(truth, free, floor, **scene)
     entry["ground_truth"] = _deposit_entry(truth_deposit, truth_deposit)
     if bounds is not None:
         entry["ground_truth"]["outside_box"] = outside_box(truth, bounds)
+    held = {"kinematic_mask": kinematic, "ground_truth": truth}
     baselines = {
-        name: extrapolate(
-            r.initial_positions, r.num_steps, kinematic_mask=kinematic, ground_truth=truth
-        )
-        for name, extrapolate in (
-            ("constant_velocity", constant_velocity_rollout),
-            ("static", static_rollout),
-        )
+        "constant_velocity": constant_velocity_rollout(
+            r.initial_positions, r.num_steps, **held, bounds=bounds, period=period
+        ),
+        "static": static_rollout(r.initial_positions, r.num_steps, **held),
     }
     for name, predicted in (("model", r.predicted_rollout), *baselines.items()):
         metrics = evaluate_rollout(
@@ -222,6 +226,7 @@ def _evaluate_one(
             distribution_every=distribution_every,
             bandwidth=bandwidth,
             nonfinite="inf",
+            period=period,
         )
         scalars = {
             key: float(value)

@@ -41,6 +41,7 @@ from gns.distances import (
     sinkhorn,
 )
 from gns.metric_inputs import FloatArray, Nonfinite, float_array, particle_mask, rollout_pair
+from gns.periodic import minimum_image
 
 # Re-exported: optimal transport, MMD and the constant-velocity baseline are the README's and
 # docs' gns.metrics.
@@ -72,9 +73,11 @@ def mse_over_time(
     mask: ArrayLike | None = None,
     *,
     nonfinite: Nonfinite = "raise",
+    period: FloatArray | None = None,
 ) -> FloatArray:
     """Per-frame mean squared error, (T,): mean over the particles selected by `mask` (N,) bool
-    (default all) and over the D dimensions of (predicted - ground_truth)^2, both (T, N, D).
+    (default all) and over the D dimensions of (predicted - ground_truth)^2, both (T, N, D);
+    the difference is the minimum image on the periodic axes of `period` (gns.periodic).
 
     Non-finite predictions raise ValueError, or with nonfinite="inf" give +inf for their frame.
     A finite prediction so large that its square overflows also gives +inf: it diverged too.
@@ -82,7 +85,8 @@ def mse_over_time(
     pred, truth, finite = rollout_pair(predicted, ground_truth, nonfinite)
     keep = particle_mask(mask, pred.shape[1])
     with np.errstate(over="ignore", invalid="ignore"):
-        per_frame: FloatArray = np.mean((pred[:, keep] - truth[:, keep]) ** 2, axis=(1, 2))
+        error = minimum_image(pred[:, keep] - truth[:, keep], period)
+        per_frame: FloatArray = np.mean(error**2, axis=(1, 2))
     per_frame[~finite] = np.inf
     return per_frame
 
@@ -144,9 +148,11 @@ def evaluate_rollout(
     exact_max_points: int = EXACT_MAX_POINTS,
     epsilon: float = 1e-2,
     nonfinite: Nonfinite = "raise",
+    period: FloatArray | None = None,
 ) -> dict[str, Any]:
     """All metrics of one rollout: predicted and ground_truth (T, N, D), mask (N,) bool of the
-    particles that count (e.g. the non-kinematic ones; default all).
+    particles that count (e.g. the non-kinematic ones; default all); on the periodic axes of
+    `period` (gns.periodic) every metric takes the minimum image (MSE, OT and MMD on the torus).
 
     Returns a dict of
       "mse": (T,) per-frame MSE;  "mse@h" / "mse@full": floats from `horizon_mse`;
@@ -173,7 +179,7 @@ def evaluate_rollout(
         raise ValueError(
             f"distribution_every must be a positive integer, got {distribution_every!r}"
         )
-    per_frame = mse_over_time(pred, truth, keep, nonfinite=nonfinite)
+    per_frame = mse_over_time(pred, truth, keep, nonfinite=nonfinite, period=period)
     frames = np.arange(0, pred.shape[0], distribution_every, dtype=np.int64)
     ot = np.full(frames.shape, np.inf)
     discrepancy = np.full(frames.shape, np.inf)
@@ -191,8 +197,9 @@ def evaluate_rollout(
             method=ot_method,
             exact_max_points=exact_max_points,
             epsilon=epsilon,
+            period=period,
         )
-        discrepancy[k] = mmd(a, b, bandwidth)
+        discrepancy[k] = mmd(a, b, bandwidth, period=period)
     summary: dict[str, Any] = {"mse": per_frame}
     summary.update(horizon_mse(per_frame, horizons))
     summary.update(

@@ -34,6 +34,7 @@ def validate(
     far the ground truth's did over the same frames. Eval mode (no noise, no statistics)."""
     from gns.evaluate import one_step_errors, outside_box
     from gns.metrics import mse_over_time
+    from gns.periodic import period_of
     from gns.rollout import RolloutDiverged, rollout
 
     figures: dict[str, float] = {}
@@ -45,6 +46,7 @@ def validate(
     history = simulator.config.model.velocity_history + 1
     rollout_errors, excursions, truth_excursions = [], [], []
     bounds = simulator.scene.bounds
+    period = period_of(bounds, simulator.scene.periodic)
     for trajectory in trajectories[: config.validation_rollouts]:
         steps = min(config.validation_rollout_steps, trajectory.num_frames - history)
         if steps < 1:
@@ -60,7 +62,9 @@ def validate(
             rollout_errors.append(math.inf)
             excursions.append(math.inf)
             continue
-        per_frame = mse_over_time(result.predicted_rollout, result.ground_truth_rollout, free)
+        per_frame = mse_over_time(
+            result.predicted_rollout, result.ground_truth_rollout, free, period=period
+        )
         rollout_errors.append(float(per_frame.mean()))
         if bounds is not None:
             excursions.append(outside_box(result.predicted_rollout[:, free], bounds))

@@ -75,7 +75,9 @@ def _format_statistics(stats: Statistics) -> str:
 
 def run_stats(args: argparse.Namespace) -> int:
     dataset = open_dataset(args.path, args.split, kinematic_particle_types=args.kinematic_types)
-    stats = compute_statistics(dataset, dataset.metadata.kinematic_particle_types)
+    stats = compute_statistics(
+        dataset, dataset.metadata.kinematic_particle_types, dataset.metadata.period
+    )
     print(
         f"{dataset.path} [{dataset.split}, {dataset.layout}, {len(dataset)} trajectories, "
         f"kinematic types {sorted(dataset.metadata.kinematic_particle_types)} left out]"

@@ -122,7 +122,9 @@ def convert(
                 dataset = open_dataset(src, split)
                 metadata = metadata or _strided_metadata(dataset.metadata, frame_stride)
                 if split == "train":
-                    accumulator = StatisticsAccumulator(metadata.kinematic_particle_types)
+                    accumulator = StatisticsAccumulator(
+                        metadata.kinematic_particle_types, metadata.period
+                    )
 
                 def stream(
                     dataset: Iterable[Trajectory] = dataset,

@@ -135,7 +135,9 @@ class ManifestSource:
         cache_key = (str(self.folder.resolve()), stamp)
         if cache_key not in _STATS_CACHE:
             stats = compute_statistics(
-                (train.read(i) for i in range(len(train))), metadata.kinematic_particle_types
+                (train.read(i) for i in range(len(train))),
+                metadata.kinematic_particle_types,
+                metadata.period,
             )
             _STATS_CACHE[cache_key] = stats.apply_to(metadata)
         return _STATS_CACHE[cache_key]

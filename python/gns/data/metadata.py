@@ -16,6 +16,7 @@ from typing import Any
 
 from gns.data.errors import DatasetError
 from gns.files import write_json_atomic
+from gns.periodic import period_of
 
 DEFAULT_KINEMATIC_TYPES = frozenset({3})
 LAGRANGEBENCH_KINEMATIC_TYPES = frozenset({1, 2, -1})
@@ -218,6 +219,12 @@ class Metadata:
     def write_json(self, path: str | os.PathLike[str]) -> None:
         """Write metadata.json atomically."""
         write_json_atomic(path, self.to_dict())
+
+    @property
+    def period(self) -> Any:
+        """(D,) the box length on each periodic axis, 0 on the others, or None without
+        periodic axes (gns.periodic): what differences of positions wrap by."""
+        return period_of(self.bounds, self.periodic_boundary_conditions)
 
     @property
     def has_statistics(self) -> bool:

@@ -15,6 +15,7 @@ import numpy as np
 
 from gns.data.metadata import DEFAULT_KINEMATIC_TYPES, Metadata
 from gns.data.trajectory import Trajectory
+from gns.periodic import minimum_image
 
 
 class RunningMoments:
@@ -88,8 +89,15 @@ class Statistics:
 class StatisticsAccumulator:
     """Adds trajectories one at a time (streaming); `result()` gives the Statistics."""
 
-    def __init__(self, kinematic_particle_types: Iterable[int] = DEFAULT_KINEMATIC_TYPES) -> None:
+    def __init__(
+        self,
+        kinematic_particle_types: Iterable[int] = DEFAULT_KINEMATIC_TYPES,
+        period: np.ndarray | None = None,
+    ) -> None:
+        """period (gns.periodic): velocities are minimum images on its periodic axes, so a
+        particle crossing a periodic box is not counted as fast."""
         self.kinematic = np.array(sorted(set(kinematic_particle_types)), dtype=np.int64)
+        self.period = period
         self.velocity = RunningMoments()
         self.acceleration = RunningMoments()
         self.context = RunningMoments()
@@ -101,7 +109,7 @@ class StatisticsAccumulator:
         if not free.any():
             return
         positions = trajectory.positions[:, free].astype(np.float64)
-        vel = np.diff(positions, axis=0)  # (T-1, n_free, D)
+        vel = minimum_image(np.diff(positions, axis=0), self.period)  # (T-1, n_free, D)
         acc = np.diff(vel, axis=0)  # (T-2, n_free, D)
         d = positions.shape[2]
         self.velocity.add(vel.reshape(-1, d))
@@ -129,9 +137,11 @@ class StatisticsAccumulator:
 def compute_statistics(
     trajectories: Iterable[Trajectory],
     kinematic_particle_types: Iterable[int] = DEFAULT_KINEMATIC_TYPES,
+    period: np.ndarray | None = None,
 ) -> Statistics:
-    """Statistics over `trajectories`, skipping particles whose type is kinematic."""
-    accumulator = StatisticsAccumulator(kinematic_particle_types)
+    """Statistics over `trajectories`, skipping particles whose type is kinematic (minimum
+    images on the periodic axes of `period`, gns.periodic)."""
+    accumulator = StatisticsAccumulator(kinematic_particle_types, period)
     for trajectory in trajectories:
         accumulator.add(trajectory)
     return accumulator.result()

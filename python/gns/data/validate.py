@@ -126,7 +126,7 @@ def validate_dataset(path: str | os.PathLike[str]) -> list[Problem]:
             continue
         metadata = dataset.metadata
         if split == "train":
-            accumulator = StatisticsAccumulator(metadata.kinematic_particle_types)
+            accumulator = StatisticsAccumulator(metadata.kinematic_particle_types, metadata.period)
         if len(dataset) == 0:
             problems.append(
                 Problem(str(dataset.files[0] if dataset.files else root), f"{split} is empty")

@@ -87,7 +87,7 @@ def write_dataset(
             )
 
     checker = _Checker(base)
-    accumulator = StatisticsAccumulator(base.kinematic_particle_types)
+    accumulator = StatisticsAccumulator(base.kinematic_particle_types, base.period)
     has_material = False  # after `adapt`: npz keeps a constant step_context as a material
     # Train first: a check that fails there should not wait for the other splits to be written.
     order = sorted(splits, key=SPLITS.index)

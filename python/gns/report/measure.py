@@ -6,6 +6,7 @@ gns.report.conclusion's."""
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -18,6 +19,7 @@ from gns.baselines import constant_velocity_rollout, static_rollout
 from gns.config import MODEL_NAMES
 from gns.deposit import DEPOSIT_CURVES, DEPOSIT_FIGURES, deposit, deposit_ratios, pile_floor
 from gns.metrics import evaluate_rollout
+from gns.periodic import period_of
 
 __all__ = ["CONSTANT_VELOCITY", "METRICS", "STATIC", "TIMING_PARTS", "Row", "score"]
 
@@ -56,6 +58,7 @@ def score(
         horizons=horizons,
         distribution_every=every,
         nonfinite="inf",
+        period=period_of(bounds, periodic),
     )
     steps = truth.shape[0]
     out: dict[str, Any] = {}
@@ -102,6 +105,12 @@ class _Scoring:
     def truth(self, trajectory: Any) -> np.ndarray:
         """(S, N, D): the frames every row predicts."""
         return np.asarray(trajectory.positions[self.history :])
+
+    def torus(self) -> dict[str, Any]:
+        """The box of a baseline that moves particles across periodic axes (bounds, period),
+        empty without periodic axes."""
+        period = period_of(self.bounds, self.periodic)
+        return {} if period is None else {"bounds": self.bounds, "period": period}
 
     def _scene(self, trajectory: Any) -> dict[str, Any]:
         floor = pile_floor(self.bounds, trajectory.positions[0])
@@ -340,7 +349,7 @@ def _constant_velocity_row(trajectories: list[Any], indices: list[int], scoring:
     return _baseline_row(
         CONSTANT_VELOCITY,
         "x(t+1) = 2 x(t) - x(t-1)",
-        constant_velocity_rollout,
+        functools.partial(constant_velocity_rollout, **scoring.torus()),
         trajectories,
         indices,
         scoring,
