@@ -75,7 +75,7 @@ def assert_apart_inside_the_walls(boxes):
 # The 3D presets are tested in test_generate_3d.py.
 PRESETS_2D = sorted(p for p in presets.PRESETS if preset_scene_dim(p) == 2)
 # sand-taichi keeps sand2d-taichi's own resolution and layout (test below).
-SHARED_RESOLUTION = sorted(set(PRESETS_2D) - {"sand-taichi"})
+SHARED_RESOLUTION = sorted(set(PRESETS_2D) - {"sand-taichi", "waterdrop-xl"})
 
 
 @pytest.mark.parametrize("preset", SHARED_RESOLUTION)
@@ -98,7 +98,7 @@ def test_presets_place_blocks_apart_inside_the_walls(preset):
         if preset == "multimaterial":
             kinds = [type(b.material) for b in scene.blocks]
             assert len(set(kinds)) == len(kinds)
-        if preset == "ramps":
+        if preset in ("ramps", "waterramps", "sandramps"):
             assert 1 <= len(scene.obstacles) <= 3
             assert len({type(b.material) for b in scene.blocks}) == 1
             obstacle = mpm.particles(mpm.MpmScene([], obstacles=scene.obstacles, grid=40))
@@ -109,7 +109,8 @@ def test_presets_place_blocks_apart_inside_the_walls(preset):
                 assert nearest.min() > 1.5 / scene.grid
         if preset == "continuous":
             (angle,) = {b.material.friction_angle_deg for b in scene.blocks}
-            assert 20 <= angle <= 45
+            # The train split (drawn here) never holds the band kept for interpolation.
+            assert 1 <= angle <= 30 or 55 <= angle <= 80
             assert scene.context == [pytest.approx(math.tan(math.radians(angle)))]
         else:
             assert scene.context is None

@@ -42,7 +42,14 @@ from gns.data.stats import StatisticsAccumulator
 from gns.data.trajectory import Trajectory
 from gns.files import atomic_file, atomic_folder, claim_folder
 from gns.mpm import MpmScene
-from gns.mpm.presets import PRESETS, SPLITS, check_scale, connectivity_radius, preset_scene
+from gns.mpm.presets import (
+    PRESET_METADATA,
+    PRESETS,
+    SPLITS,
+    check_scale,
+    connectivity_radius,
+    preset_scene,
+)
 
 __all__ = [
     "PRESETS",
@@ -57,7 +64,7 @@ __all__ = [
 # silently skipping it would bias the dataset towards the scenes that happen to be stable.
 MAX_DRAWS = 8
 # Bump when the meaning of the cached files or of a seed changes, so old partial runs are refused.
-CACHE_FORMAT = 1
+CACHE_FORMAT = 2  # 2: continuous draws 1-80 degrees with a held-out band
 
 
 def confinement(scene: MpmScene) -> tuple[tuple[float, float], ...]:
@@ -386,6 +393,7 @@ def _assemble(
                     "preset": preset,
                     "seed": seed,
                     **({"scale": scale} if scale != 1.0 else {}),
+                    **PRESET_METADATA.get(preset, {}),
                     # Which draw each trajectory is (0 unless earlier draws failed).
                     "draws": {s: d for s, d in draws.items() if any(d)},
                 }

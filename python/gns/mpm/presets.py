@@ -9,8 +9,12 @@ WaterRamps 600, MultiMaterial 1000; SAND-3D 350, GOOP-3D 300, BOXBATH 150).
                  axis (sand U(-4.5, 4.5): see SAND_SPEED)
   multimaterial  2-3 blocks of distinct materials among water, sand and goop
   ramps          water or sand blocks among 1-3 static ramps (kinematic particles, type 3)
-  continuous     sand as above whose friction angle is U(20, 45) degrees per trajectory, stored
-                 as the global feature tan(angle) (DeepMind's step_context)
+  waterramps, sandramps
+                 the same with water only (600 frames) or sand only (400): WATERRAMPS, SANDRAMPS
+  waterdrop-xl   waterdrop at 1.5 times the resolution, radius 0.01: WATERDROP-XL
+  continuous     sand as above whose friction angle is drawn per trajectory from 1-80 degrees,
+                 30-55 held out of the train split (the metadata says so), stored as the global
+                 feature tan(angle) (DeepMind's step_context): CONTINUOUS and its figure C.5
   sand-taichi    sand2d-taichi's scenes: one 0.2 x 0.2 sand block at rest or thrown at up to
                  1 m/s per axis, friction U(20, 45) degrees as in continuous, 350 frames, at
                  that dataset's own resolution (grid 64, 4 particles a cell)
@@ -231,25 +235,64 @@ def random_ramps(rng: np.random.Generator, count: int, spacing: float) -> list[S
     return segments
 
 
-def ramps(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """Water or sand blocks among 1-3 static ramps: WaterRamps (and its sand twin)."""
+def _ramps(
+    rng: np.random.Generator, material: mpm.Material | None, frames: int
+) -> tuple[MpmScene, int]:
+    """Blocks among 1-3 static ramps, of `material` or (None) water or sand drawn at random."""
     empty = _scene([])
     segments = random_ramps(rng, _count(rng), empty.spacing)
-    material: mpm.Material = Water() if rng.random() < 0.5 else Sand()
+    if material is None:
+        material = Water() if rng.random() < 0.5 else Sand()
     # Obstacle particles make the 3 x 3 grid nodes around them sticky: blocks keep clear of
     # those nodes too, or they would start stuck.
     probe = mpm.particles(_scene([], obstacles=segments))["positions"]
     gap = GAP + 2 / empty.grid
     blocks = _blocks(rng, [material] * _count(rng), SPEED, probe, gap)
-    return _scene(blocks, obstacles=segments), 601
+    return _scene(blocks, obstacles=segments), frames
 
 
-def continuous(rng: np.random.Generator) -> tuple[MpmScene, int]:
-    """Sand with the friction angle U(20, 45) degrees per trajectory, given to the model as
-    tan(angle), the Mohr-Coulomb friction coefficient (as sand2d-taichi's material_property)."""
-    angle = float(rng.uniform(20.0, 45.0))
+def ramps(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """Water or sand blocks (drawn per trajectory) among 1-3 static ramps."""
+    return _ramps(rng, None, 601)
+
+
+def waterramps(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """Water blocks among 1-3 static ramps, 600 frames: WATERRAMPS."""
+    return _ramps(rng, Water(), 601)
+
+
+def sandramps(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """Sand blocks among 1-3 static ramps, 400 frames: SANDRAMPS."""
+    return _ramps(rng, Sand(), 401)
+
+
+def waterdrop_xl(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """WaterDrop at 1.5 times the resolution (2.25 times the particles, radius 0.01, the
+    paper's WATERDROP-XL's)."""
+    scene, frames = waterdrop(rng)
+    return dataclasses.replace(scene, grid=60), frames
+
+
+# CONTINUOUS (the paper's C.5): friction angles 0-80 degrees, with 30-55 held out of the train
+# split to test interpolation; valid and test draw from the whole range. 1, not 0: the
+# simulator's Drucker-Prager needs an angle above 0.
+CONTINUOUS_ANGLES = (1.0, 80.0)
+HELD_OUT_ANGLES = (30.0, 55.0)
+
+
+def continuous(rng: np.random.Generator, split: str = "train") -> tuple[MpmScene, int]:
+    """Sand with one friction angle per trajectory, in CONTINUOUS_ANGLES but outside
+    HELD_OUT_ANGLES in the train split, given to the model as tan(angle), the Mohr-Coulomb
+    friction coefficient (as sand2d-taichi's material_property)."""
+    (lo, hi), (out_lo, out_hi) = CONTINUOUS_ANGLES, HELD_OUT_ANGLES
+    if split == "train":
+        # Uniform over the two bands: a draw over their joint width, then placed.
+        u = float(rng.uniform(0.0, (out_lo - lo) + (hi - out_hi)))
+        angle = lo + u if u < out_lo - lo else out_hi + (u - (out_lo - lo))
+    else:
+        angle = float(rng.uniform(lo, hi))
     blocks = _blocks(rng, [Sand(friction_angle_deg=angle)] * _count(rng), SAND_SPEED)
-    return _scene(blocks, context=[math.tan(math.radians(angle))]), 321
+    return _scene(blocks, context=[math.tan(math.radians(angle))]), 401
 
 
 # sand2d-taichi's setup (Taichi-Elements as geoelements ran it; the defaults of MpmScene): one
@@ -359,6 +402,9 @@ PRESETS: dict[str, Preset] = {
     "goop": goop,
     "multimaterial": multimaterial,
     "ramps": ramps,
+    "waterramps": waterramps,
+    "sandramps": sandramps,
+    "waterdrop-xl": waterdrop_xl,
     "continuous": continuous,
     "sand-taichi": sand_taichi,
     "water-3d": water_3d,
@@ -366,8 +412,13 @@ PRESETS: dict[str, Preset] = {
     "goop-3d": goop_3d,
     "boxbath": boxbath,
 }
+# What a preset's metadata says about how it was drawn (gns generate writes it).
+PRESET_METADATA: dict[str, dict[str, Any]] = {
+    "continuous": {"held_out_friction_angle_deg": list(HELD_OUT_ANGLES), "held_out_of": "train"}
+}
 # Each preset's connectivity radius at scale 1 (CONNECTIVITY_RADIUS when not named).
 RADIUS = {
+    "waterdrop-xl": 0.01,
     "water-3d": RADIUS_3D,
     "sand-3d": RADIUS_3D,
     "goop-3d": RADIUS_3D,
@@ -409,7 +460,8 @@ def preset_scene(
 ) -> tuple[MpmScene, int, int]:
     """(scene, frames, lattice seed) of one draw, exactly as `generate` makes it."""
     rng = np.random.default_rng(trajectory_seed(seed, split, index, draw))
-    scene, frames = _preset(preset)(rng)
+    # Presets that draw differently per split (a held-out band) say so by name.
+    scene, frames = continuous(rng, split) if preset == "continuous" else _preset(preset)(rng)
     return _scaled(scene, check_scale(scale)), frames, int(rng.integers(2**63))
 
 
