@@ -119,3 +119,48 @@ def test_continuous_holds_30_to_55_degrees_out_of_train_only(made):
     scene = presets.preset_scene("continuous", 0, "test", 0)[0]
     angle = scene.blocks[0].material.friction_angle_deg
     assert scene.context == [pytest.approx(math.tan(math.radians(angle)))]
+
+
+def test_eval_draws_error_against_friction_angle_with_the_band_marked(
+    tmp_path, capsys, monkeypatch
+):
+    """Figure C.5 from `gns eval` on continuous data: rollouts whose error grows with the
+    angle by construction (prediction = truth + angle / 1000 in x) give per-trajectory MSE
+    (angle / 1000)^2 / 2 at the angle read back from the global feature, flagged in or out
+    of the held-out band."""
+    from gns.rollout import Rollout, rollout_path, save_rollout
+
+    data = tmp_path / "data"
+    assert main(["generate", "--preset", "continuous", "--out", str(data), "--n-train", "1",
+                 "--n-test", "4", "--frames", "10", "--quiet"]) == 0  # fmt: skip
+    folder = tmp_path / "run" / "rollouts" / "test"
+    folder.mkdir(parents=True)
+    expected = []
+    for index, t in enumerate(open_dataset(data, "test")):
+        angle = math.degrees(math.atan(float(t.step_context[0, 0])))
+        x = t.positions.astype(np.float64)
+        save_rollout(
+            rollout_path(folder, "test", index),
+            Rollout(
+                initial_positions=x[:6],
+                predicted_rollout=x[6:] + [angle / 1000, 0.0],
+                ground_truth_rollout=x[6:],
+                particle_type=t.particle_type,
+                step_context=t.step_context[:-1],
+                metadata={"trajectory": index},
+            ),
+        )
+        expected.append((angle, (angle / 1000) ** 2 / 2))
+    # Any model names where the output goes (./NAME for a model folder); without one-step
+    # errors eval never loads it.
+    monkeypatch.chdir(tmp_path)
+    argv = ["eval", "--run", "sand2d-taichi", "--rollouts", str(folder), "--data", str(data)]
+    assert main([*argv, "--split", "test", "--one-step-windows", "0"]) == 0
+    assert "in the band held out of training (30-55 degrees)" in capsys.readouterr().out
+    out = tmp_path / "sand2d-taichi"
+    written = json.loads((out / "eval_test.json").read_text())["generalisation"]
+    assert written["held_out"] == [30.0, 55.0]
+    np.testing.assert_allclose(written["angle"], [a for a, _ in expected], rtol=1e-5)
+    np.testing.assert_allclose(written["model"], [e for _, e in expected], rtol=1e-4)
+    assert written["in_band"] == [30 < a < 55 for a, _ in expected]
+    assert (out / "generalisation_test.png").read_bytes()[:4] == b"\x89PNG"

@@ -600,6 +600,7 @@ def run_eval(args: argparse.Namespace) -> int:
     from gns.device import resolve_device
     from gns.evaluate import (
         evaluate_rollouts,
+        generalisation,
         one_step_errors,
         rest_summary,
         rest_test,
@@ -656,6 +657,23 @@ def run_eval(args: argparse.Namespace) -> int:
     written = run_folder(args.run) / f"eval_{args.split}.json"
     # A model folder's outputs go to ./NAME, which --rollouts from elsewhere did not make.
     written.parent.mkdir(parents=True, exist_ok=True)
+    generator = open_dataset(args.data, args.split).metadata.extra.get("generator")
+    band = generalisation(report, rollouts, generator)
+    if band is not None:
+        from gns.plots import error_against_parameter
+
+        report["generalisation"] = band
+        figure = written.with_name(f"generalisation_{args.split}.png")
+        errors = {
+            "GNS": np.array(band["model"]),
+            "constant velocity": np.array(band["constant_velocity"]),
+        }
+        error_against_parameter(np.array(band["angle"]), errors, tuple(band["held_out"]), figure)
+        inside = sum(band["in_band"])
+        print(
+            f"{inside} of {len(band['angle'])} trajectories in the band held out of training "
+            f"({band['held_out'][0]:g}-{band['held_out'][1]:g} degrees): {figure}"
+        )
     write_json_atomic(written, report)
     print(f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box: worst)")
     if report.get("frame_stride", 1) > 1:

@@ -45,6 +45,7 @@ from gns.simulator import LearnedSimulator
 # mean_neighbours lived here first: still importable from gns.evaluate.
 __all__ = [
     "evaluate_rollouts",
+    "generalisation",
     "mean_neighbours",
     "one_step_errors",
     "outside_box",
@@ -320,6 +321,31 @@ def rest_test(
     if scene.bounds is not None:
         result["outside_box"] = outside_box(final[None], scene.bounds)
     return result
+
+
+def generalisation(
+    report: dict[str, Any], rollouts: Sequence[Rollout], generator: dict[str, Any] | None
+) -> dict[str, Any] | None:
+    """Error against friction angle on data whose metadata holds a band of angles out of
+    training (gns.mpm.presets' continuous; the paper's figure C.5): {"held_out": [lo, hi],
+    "angle": per trajectory (degrees, from the global feature tan(angle)), "in_band": bool,
+    and per method its "mse@full" per trajectory}. None for other data."""
+    band = (generator or {}).get("held_out_friction_angle_deg")
+    if band is None or any(r.step_context is None for r in rollouts):
+        return None
+    lo, hi = (float(v) for v in band)
+    angles = [math.degrees(math.atan(float(r.step_context[0, 0]))) for r in rollouts]
+    out: dict[str, Any] = {
+        "held_out": [lo, hi],
+        "angle": angles,
+        "in_band": [lo < a < hi for a in angles],
+    }
+    for name in ("model", "constant_velocity"):
+        # A rollout that diverged at its first step has no baseline entries: infinitely wrong.
+        out[name] = [
+            (entry.get(name) or {}).get("mse@full", math.inf) for entry in report["trajectories"]
+        ]
+    return out
 
 
 # The columns of `gns eval`'s summary: evaluate_rollouts' names and their headings.

@@ -34,6 +34,7 @@ __all__ = [
     "animation",
     "animation_frames",
     "diverged_frame",
+    "error_against_parameter",
     "error_over_time",
     "error_vs_time",
     "front_over_time",
@@ -300,6 +301,33 @@ def front_over_time(
     if title:
         figure.suptitle(title, fontsize=11)
     _legend_below(figure, handles, labels, 0.94 if title else 1.0)
+    _save_png(figure, path)
+    return figure
+
+
+def error_against_parameter(
+    values: np.ndarray,
+    errors: dict[str, np.ndarray],
+    held_out: tuple[float, float],
+    path: str | os.PathLike[str],
+    name: str = "friction angle (degrees)",
+) -> Figure:
+    """The paper's figure C.5: each trajectory's error (errors: label -> (K,) MSE over the full
+    rollout, one per value) against the parameter it was made with, values (K,), the band
+    held out of training shaded red. Returns the figure (saved to `path`)."""
+    figure = Figure(figsize=(7, 4.2), dpi=100)
+    ax = figure.subplots()
+    ax.axvspan(*held_out, color="#d62728", alpha=0.12, lw=0, label="held out of training")
+    order = np.argsort(values)
+    for (label, error), marker in zip(errors.items(), "os^v", strict=False):
+        shown = np.where(np.isfinite(error), error, np.nan)[order]
+        ax.plot(np.asarray(values)[order], shown, marker=marker, lw=1, ms=4, label=label)
+    ax.set_yscale("log")
+    ax.set_xlabel(name)
+    ax.set_ylabel("MSE over the full rollout")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("error against the held-out parameter (figure C.5)", fontsize=10)
     _save_png(figure, path)
     return figure
 
