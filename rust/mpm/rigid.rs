@@ -269,16 +269,21 @@ mod tests {
             [0.0, -0.03, -0.09],
             [-0.05, -0.05, 0.07],
         ];
-        let (mut s, mut l) = ([[0.0; 3]; 3], [[0.0; 3]; 3]);
-        for r in &cloud {
-            let v = mul_vector(&skew, r);
-            for i in 0..3 {
-                for j in 0..3 {
-                    s[i][j] += r[i] * r[j];
-                    l[i][j] += v[i] * r[j] - r[i] * v[j];
+        // The second moment and angular momentum of points moving with the spin `skew`.
+        let moments = |points: &[[f64; 3]]| {
+            let (mut s, mut l) = ([[0.0; 3]; 3], [[0.0; 3]; 3]);
+            for r in points {
+                let v = mul_vector(&skew, r);
+                for i in 0..3 {
+                    for j in 0..3 {
+                        s[i][j] += r[i] * r[j];
+                        l[i][j] += v[i] * r[j] - r[i] * v[j];
+                    }
                 }
             }
-        }
+            (s, l)
+        };
+        let (s, l) = moments(&cloud);
         let w = <Dim<3>>::angular_velocity(&s, &l);
         for i in 0..3 {
             for j in 0..3 {
@@ -287,16 +292,7 @@ mod tests {
         }
         // A line along x: spin about x is undetermined and left out; the rest is found.
         let line = [[-0.1, 0.0, 0.0], [0.0, 0.0, 0.0], [0.1, 0.0, 0.0]];
-        let (mut s, mut l) = ([[0.0; 3]; 3], [[0.0; 3]; 3]);
-        for r in &line {
-            let v = mul_vector(&skew, r);
-            for i in 0..3 {
-                for j in 0..3 {
-                    s[i][j] += r[i] * r[j];
-                    l[i][j] += v[i] * r[j] - r[i] * v[j];
-                }
-            }
-        }
+        let (s, l) = moments(&line);
         let w = <Dim<3>>::angular_velocity(&s, &l);
         assert!(w[2][1].abs() < 1e-12, "{w:?}"); // omega_x
         assert!((w[0][2] - omega[1]).abs() < 1e-12 && (w[1][0] - omega[2]).abs() < 1e-12);
