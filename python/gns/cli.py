@@ -615,6 +615,7 @@ def run_eval(args: argparse.Namespace) -> int:
     if not files:
         raise ValueError(f"no rollouts in {folder}; run `gns rollout --run {args.run} ...` first")
     rollouts = [load_rollout(f) for f in files]
+    dataset = open_dataset(args.data, args.split)
     # The checkpoint and the dataset are checked before the metrics, which take the time.
     if args.one_step_windows or args.rest_steps:
         device = resolve_device(args.device)
@@ -626,7 +627,6 @@ def run_eval(args: argparse.Namespace) -> int:
         else:
             checkpoint = choose_checkpoint(args.run, args.checkpoint)
         simulator = load_simulator(checkpoint, device)
-        dataset = open_dataset(args.data, args.split)
         # One-step errors and the rest test on the frames the model steps between, as its
         # rollouts were made (gns rollout): every stride-th frame of the data.
         stride = simulator.frame_stride_for(dataset.metadata)
@@ -657,8 +657,7 @@ def run_eval(args: argparse.Namespace) -> int:
     written = run_folder(args.run) / f"eval_{args.split}.json"
     # A model folder's outputs go to ./NAME, which --rollouts from elsewhere did not make.
     written.parent.mkdir(parents=True, exist_ok=True)
-    generator = open_dataset(args.data, args.split).metadata.extra.get("generator")
-    band = generalisation(report, rollouts, generator)
+    band = generalisation(report, rollouts, dataset.metadata.extra.get("generator"))
     if band is not None:
         from gns.plots import error_against_parameter
 
