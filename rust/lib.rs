@@ -21,7 +21,7 @@ mod python;
 
 pub use graph::{radius_graph, Edges, GraphOptions, Method, Searcher, DEFAULT_MAX_EDGES};
 pub use integrate::euler_step;
-pub use walls::{obstacle_features, wall_features, Obstacle};
+pub use walls::{nearest_obstacle_features, obstacle_features, wall_features, Obstacle};
 
 use std::fmt;
 

@@ -383,6 +383,29 @@ fn obstacle_features(
     }
 }
 
+/// nearest_obstacle_features(positions, obstacles, radius, clip) -> (N, D)
+#[pyfunction]
+fn nearest_obstacle_features(
+    py: Python<'_>,
+    positions: &Bound<'_, PyAny>,
+    obstacles: Vec<PyRef<'_, PyObstacle>>,
+    radius: f64,
+    clip: f64,
+) -> PyResult<Py<PyAny>> {
+    let floats = Floats::extract("positions", positions)?;
+    let shapes: Vec<&Obstacle> = obstacles.iter().map(|o| &o.inner).collect();
+    let width = floats.dim();
+    let shapes = &shapes;
+    match &floats {
+        Floats::F32(a) => floats_out(py, a, width, |x, d| {
+            walls::nearest_obstacle_features(x, d, shapes, radius, clip)
+        }),
+        Floats::F64(a) => floats_out(py, a, width, |x, d| {
+            walls::nearest_obstacle_features(x, d, shapes, radius, clip)
+        }),
+    }
+}
+
 fn euler_typed<'py, T: Real + Element>(
     py: Python<'py>,
     x: &PyReadonlyArray2<'py, T>,
@@ -666,6 +689,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(radius_graph, m)?)?;
     m.add_function(wrap_pyfunction!(wall_features, m)?)?;
     m.add_function(wrap_pyfunction!(obstacle_features, m)?)?;
+    m.add_function(wrap_pyfunction!(nearest_obstacle_features, m)?)?;
     m.add_function(wrap_pyfunction!(euler_step, m)?)?;
     m.add_function(wrap_pyfunction!(mpm_simulate, m)?)?;
     m.add_class::<PySearcher>()?;

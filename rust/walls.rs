@@ -276,19 +276,10 @@ fn transformed3(shape: p3::shape::Cuboid, iso: p3::math::Isometry<f64>) -> p3::s
     p3::shape::Compound::new(vec![(iso, p3::shape::SharedShape::new(shape))])
 }
 
-/// Obstacle features, shape (N, K D): for each obstacle k, (nearest point - x) / radius when
-/// that point is within `radius` of the particle, else zeros.
-pub fn obstacle_features<T: Real>(
-    positions: &[T],
-    dim: usize,
-    obstacles: &[&Obstacle],
-    radius: f64,
-) -> Result<Vec<T>> {
-    let n = check_positions(positions, dim)?;
-    check_positive("radius", radius)?;
-    if radius > MAX_OBSTACLE_COORDINATE {
+fn check_obstacles(dim: usize, obstacles: &[&Obstacle], reach: f64) -> Result<()> {
+    if reach > MAX_OBSTACLE_COORDINATE {
         return Err(Error::Value(format!(
-            "radius = {radius:e}; obstacle features need a radius of at most \
+            "radius = {reach:e}; obstacle features need a radius of at most \
              {MAX_OBSTACLE_COORDINATE:e}"
         )));
     }
@@ -300,17 +291,35 @@ pub fn obstacle_features<T: Real>(
             )));
         }
     }
+    Ok(())
+}
+
+/// Farther than `reach` from the obstacle's bounding box along some axis. Besides saving the
+/// projection, this keeps far particles (at any finite coordinate) out of parry's squared
+/// distances.
+fn beyond(bounds: &([f64; 3], [f64; 3]), x: &[f64], reach: f64) -> bool {
+    let (lo, hi) = bounds;
+    (0..x.len()).any(|d| lo[d] - x[d] > reach || x[d] - hi[d] > reach)
+}
+
+/// Obstacle features, shape (N, K D): for each obstacle k, (nearest point - x) / radius when
+/// that point is within `radius` of the particle, else zeros.
+pub fn obstacle_features<T: Real>(
+    positions: &[T],
+    dim: usize,
+    obstacles: &[&Obstacle],
+    radius: f64,
+) -> Result<Vec<T>> {
+    let n = check_positions(positions, dim)?;
+    check_positive("radius", radius)?;
+    check_obstacles(dim, obstacles, radius)?;
     let width = obstacles.len() * dim;
     let mut out = vec![T::from_f64(0.0); n * width];
     let boxes: Vec<_> = obstacles.iter().map(|o| o.bounds()).collect();
     for_rows(&mut out, width, |i, row| {
         let x: Vec<f64> = (0..dim).map(|d| positions[i * dim + d].to_f64()).collect();
         for (k, o) in obstacles.iter().enumerate() {
-            // Farther than the radius from the bounding box along some axis: the features are
-            // zero. Besides saving the projection, this keeps far particles (at any finite
-            // coordinate) out of parry's squared distances.
-            let (lo, hi) = boxes[k];
-            if (0..dim).any(|d| lo[d] - x[d] > radius || x[d] - hi[d] > radius) {
+            if beyond(&boxes[k], &x, radius) {
                 continue;
             }
             let p = o.nearest(&x);
@@ -318,6 +327,53 @@ pub fn obstacle_features<T: Real>(
             if v.iter().map(|c| c * c).sum::<f64>() <= 1.0 {
                 for d in 0..dim {
                     row[k * dim + d] = T::from_f64(v[d]);
+                }
+            }
+        }
+    });
+    Ok(out)
+}
+
+/// The nearest obstacle of a set, shape (N, D): the unit vector from the particle towards the
+/// nearest surface point of all `obstacles`, scaled by 1 - d / reach (reach = clip * radius):
+/// 1 at contact, 0 at `reach` and beyond. One D-vector whatever the number of shapes, so one
+/// model serves scenes with different obstacles (1-3 ramps, a floor of any number of
+/// segments); zero at the reach and growing towards contact, so the feature is continuous
+/// and a particle sees nothing of an obstacle beyond it, as with boundary particles.
+pub fn nearest_obstacle_features<T: Real>(
+    positions: &[T],
+    dim: usize,
+    obstacles: &[&Obstacle],
+    radius: f64,
+    clip: f64,
+) -> Result<Vec<T>> {
+    let n = check_positions(positions, dim)?;
+    check_positive("radius", radius)?;
+    check_positive("clip", clip)?;
+    let reach = clip * radius;
+    check_obstacles(dim, obstacles, reach)?;
+    let mut out = vec![T::from_f64(0.0); n * dim];
+    let boxes: Vec<_> = obstacles.iter().map(|o| o.bounds()).collect();
+    for_rows(&mut out, dim, |i, row| {
+        let x: Vec<f64> = (0..dim).map(|d| positions[i * dim + d].to_f64()).collect();
+        let mut best: Option<(f64, [f64; 3])> = None;
+        for (k, o) in obstacles.iter().enumerate() {
+            if beyond(&boxes[k], &x, reach) {
+                continue;
+            }
+            let p = o.nearest(&x);
+            let d2: f64 = (0..dim).map(|d| (p[d] - x[d]).powi(2)).sum();
+            if best.is_none_or(|(b, _)| d2 < b) {
+                best = Some((d2, p));
+            }
+        }
+        if let Some((d2, p)) = best {
+            let d = d2.sqrt();
+            // On the surface itself the direction is undefined: the feature is left at zero.
+            if d < reach && d > 0.0 {
+                let scale = (1.0 - d / reach) / d;
+                for c in 0..dim {
+                    row[c] = T::from_f64((p[c] - x[c]) * scale);
                 }
             }
         }

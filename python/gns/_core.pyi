@@ -11,6 +11,7 @@ __all__ = [
     "RadiusSearcher",
     "euler_step",
     "mpm_simulate",
+    "nearest_obstacle_features",
     "obstacle_features",
     "radius_graph",
     "wall_features",
@@ -72,6 +73,12 @@ class Obstacle:
 
 def obstacle_features(
     positions: npt.NDArray[np.floating[Any]], obstacles: list[Obstacle], radius: float
+) -> npt.NDArray[np.floating[Any]]: ...
+def nearest_obstacle_features(
+    positions: npt.NDArray[np.floating[Any]],
+    obstacles: list[Obstacle],
+    radius: float,
+    clip: float,
 ) -> npt.NDArray[np.floating[Any]]: ...
 def euler_step(
     position: npt.NDArray[np.floating[Any]],

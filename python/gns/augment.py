@@ -26,8 +26,8 @@ def check_mirror_axes(
 ) -> None:
     """Refuses mirror axes a scene is visibly not symmetric along: an axis the scene lacks, and
     an axis along which the mean acceleration is larger than its std (gravity or another steady
-    force points along it, and would be reversed). Obstacles given as kinematic particles are
-    mirrored with everything else."""
+    force points along it, and would be reversed). Obstacles, as kinematic particles or as
+    shapes, are mirrored with everything else."""
     for axis in axes:
         if not 0 <= axis < dim:
             raise ValueError(f"mirror_axes contains {axis}; expected axes in 0..{dim - 1}")
@@ -56,6 +56,7 @@ def mirror_batch(
     if not flips.any():
         return batch
     positions = batch.positions.copy()
+    obstacles = None if batch.obstacles is None else [list(o) for o in batch.obstacles]
     ends = np.cumsum(batch.n_node)
     starts = ends - batch.n_node
     for g, (start, end) in enumerate(zip(starts, ends, strict=True)):
@@ -63,4 +64,13 @@ def mirror_batch(
             if flips[g, k]:
                 centre_twice = 0.0 if bounds is None else bounds[axis][0] + bounds[axis][1]
                 positions[:, start:end, axis] = centre_twice - positions[:, start:end, axis]
-    return dataclasses.replace(batch, positions=positions)
+                if obstacles is not None:  # the obstacles are part of the scene mirrored
+                    obstacles[g] = [_mirrored(v, axis, centre_twice) for v in obstacles[g]]
+    mirrored = None if obstacles is None else tuple(tuple(o) for o in obstacles)
+    return dataclasses.replace(batch, positions=positions, obstacles=mirrored)
+
+
+def _mirrored(vertices: np.ndarray, axis: int, centre_twice: float) -> np.ndarray:
+    out = vertices.copy()
+    out[:, axis] = centre_twice - out[:, axis]
+    return out

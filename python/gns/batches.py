@@ -11,9 +11,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+import gns.ops as ops
 from gns.data.windows import Batch
 
-__all__ = ["batch_tensors"]
+__all__ = ["batch_obstacles", "batch_tensors", "obstacle_shapes"]
 
 
 def batch_tensors(batch: Batch, device: torch.device) -> dict[str, Tensor | None]:
@@ -31,3 +32,15 @@ def batch_tensors(batch: Batch, device: torch.device) -> dict[str, Tensor | None
         "context": tensor(batch.step_context),
         "material_property": tensor(batch.material_property),
     }
+
+
+def obstacle_shapes(polylines: tuple[np.ndarray, ...] | None) -> list[ops.Obstacle]:
+    """A trajectory's obstacle polylines (gns.data.Trajectory.obstacles) as shapes."""
+    return [ops.Obstacle.polyline(v) for v in polylines or ()]
+
+
+def batch_obstacles(batch: Batch) -> list[list[ops.Obstacle]] | None:
+    """Each graph's obstacle shapes (the simulator's `obstacles`), or None without any."""
+    if batch.obstacles is None:
+        return None
+    return [obstacle_shapes(polylines) for polylines in batch.obstacles]

@@ -51,12 +51,13 @@ __all__ = [
     "statistics_dict",
 ]
 
-CHECKPOINT_FORMAT = "gns-checkpoint-2"
+CHECKPOINT_FORMAT = "gns-checkpoint-3"
 # Formats load_checkpoint reads. 1: before the scene recorded the training data's frame spacing
-# (Scene.dt); such a model loads with frame_dt None and reads every frame, as it did. New
-# checkpoints say 2, so that a gns which predates Scene.dt refuses them with a message rather
-# than failing on the scene's unknown entry.
-READABLE_FORMATS = ("gns-checkpoint-1", CHECKPOINT_FORMAT)
+# (Scene.dt); such a model loads with frame_dt None and reads every frame, as it did. 2: before
+# the scene had obstacle features (Scene.obstacles, obstacle_clip); it loads without them. New
+# checkpoints say 3, so that an older gns refuses them with a message rather than failing on
+# the scene's unknown entry.
+READABLE_FORMATS = ("gns-checkpoint-1", "gns-checkpoint-2", CHECKPOINT_FORMAT)
 # What load_simulator needs (best.pt holds only these), and what an exact resume needs too.
 WEIGHTS_KEYS = ("format", "step", "config", "scene", "statistics", "model")
 RESUME_KEYS = (*WEIGHTS_KEYS, "optimizer", "sampler", "noise_generator")

@@ -291,6 +291,10 @@ class SceneConfig:
     wall_clip: wall distances are clipped to [-wall_clip, wall_clip] radii; None takes the
         metadata's boundary_augment (1, the paper's clip at the radius, when absent). A larger
         clip lets the model see a wall coming when particles move more than a radius a step.
+    obstacles: add the nearest static obstacle shape of each trajectory (metadata.json's
+        "obstacles", as `gns generate` writes for ramps) as D node features; None: when the
+        dataset has obstacles.
+    obstacle_clip: how many radii away an obstacle is seen; None takes the wall clip.
     """
 
     radius: float | None = None
@@ -300,12 +304,13 @@ class SceneConfig:
     kinematic_particle_types: tuple[int, ...] | None = None
     gravity: tuple[float, ...] | None = None
     wall_clip: float | None = None
+    obstacles: bool | None = None
+    obstacle_clip: float | None = None
 
     def __post_init__(self) -> None:
-        if self.radius is not None:
-            _positive(self, "radius")
-        if self.wall_clip is not None:
-            _positive(self, "wall_clip")
+        for name in ("radius", "wall_clip", "obstacle_clip"):
+            if getattr(self, name) is not None:
+                _positive(self, name)
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from gns.baselines import constant_velocity_rollout, static_rollout
-from gns.batches import batch_tensors
+from gns.batches import batch_obstacles, batch_tensors
 from gns.data.trajectory import Trajectory
 from gns.data.windows import collate, trajectory_windows, window_keys
 from gns.deposit import (
@@ -85,11 +85,17 @@ def one_step_errors(
     try:
         for k, start in pairs:
             window = next(trajectory_windows(trajectories[k], history, [start]))
-            t = batch_tensors(collate([window]), device)
+            batch = collate([window])
+            t = batch_tensors(batch, device)
             sequence, truth = t["position_sequence"], t["next_position"]
             assert sequence is not None and truth is not None and t["particle_type"] is not None
             predicted = simulator.predict_positions(
-                sequence, t["particle_type"], t["n_node"], t["context"], t["material_property"]
+                sequence,
+                t["particle_type"],
+                t["n_node"],
+                t["context"],
+                t["material_property"],
+                obstacles=batch_obstacles(batch),
             )
             # Differences as the model takes them: minimum images on periodic axes.
             last = sequence[:, -1]

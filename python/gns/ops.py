@@ -18,6 +18,7 @@ __all__ = [
     "Obstacle",
     "RadiusSearcher",
     "euler_step",
+    "nearest_obstacle_features",
     "obstacle_features",
     "radius_graph",
     "wall_features",
@@ -271,12 +272,31 @@ def obstacle_features(positions: Any, obstacles: Sequence[Obstacle], radius: flo
     positions: (N, D); obstacles: K gns.Obstacle of the same dimension. Returns (N, K D).
     """
     x = _floats("positions", positions)
+    return _like(_core.obstacle_features(x, _shapes(obstacles), float(radius)), positions)
+
+
+def _shapes(obstacles: Sequence[Obstacle]) -> list[_core.Obstacle]:
     shapes = []
     for k, o in enumerate(obstacles):
         if not isinstance(o, Obstacle):
             raise ValueError(f"obstacles[{k}] must be a gns.Obstacle, got {type(o).__name__}")
         shapes.append(o._core)
-    return _like(_core.obstacle_features(x, shapes, float(radius)), positions)
+    return shapes
+
+
+def nearest_obstacle_features(
+    positions: Any, obstacles: Sequence[Obstacle], radius: float, *, clip: float = 1.0
+) -> Any:
+    """The nearest of all `obstacles`, one D-vector per particle whatever their number: the
+    unit vector towards the nearest surface point, times 1 - d / (clip radius) (1 at contact,
+    0 at clip radii and beyond; 0 on the surface itself, where the direction is undefined).
+
+    positions: (N, D); obstacles: gns.Obstacle shapes of the same dimension (none: zeros).
+    Returns (N, D) in the positions' dtype.
+    """
+    x = _floats("positions", positions)
+    shapes = _shapes(obstacles)
+    return _like(_core.nearest_obstacle_features(x, shapes, float(radius), float(clip)), positions)
 
 
 def euler_step(position: Any, velocity: Any, acceleration: Any, dt: float = 1.0) -> Any:

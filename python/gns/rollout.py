@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 import gns
+from gns.batches import obstacle_shapes
 from gns.config import Precision
 from gns.data.trajectory import Trajectory
 from gns.files import atomic_file
@@ -424,6 +425,9 @@ def rollout(
     material = None
     if trajectory.material_property is not None:
         material = torch.from_numpy(trajectory.material_property).to(device)
+    obstacles = None  # the simulator's own shapes, if any
+    if trajectory.obstacles is not None:
+        obstacles = [obstacle_shapes(trajectory.obstacles)]
 
     lo, hi = (x.to(device, dtype) for x in _domain(simulator, positions[0]))
     if escape_distance is not None:
@@ -473,7 +477,9 @@ def rollout(
             precision, tuner = _runtime(
                 simulator,
                 device,
-                lambda: simulator.features(window, types, None, context_at(c), material),
+                lambda: simulator.features(
+                    window, types, None, context_at(c), material, obstacles=obstacles
+                ),
                 now,
             )
             tuner.__enter__()
@@ -483,7 +489,7 @@ def rollout(
                 tuner.begin()  # outside the timed step: the tuner's own work is not charged
                 start = now()
                 next_position = simulator.predict_positions(
-                    window, types, None, context_at(frame), material, mark=mark
+                    window, types, None, context_at(frame), material, mark=mark, obstacles=obstacles
                 )
                 if num_kinematic:
                     next_position[kinematic_index] = kinematic_truth[frame + 1]

@@ -16,6 +16,7 @@ input width follows from the scene; nothing here knows a particular dataset.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
@@ -58,9 +59,12 @@ class Scene:
     context (0: none). material_property_size: width of the per-particle material property.
     kinematic_particle_types: no noise, no loss, ground truth in rollouts. gravity: per-frame
     acceleration (D,), used by model.add_gravity. wall_clip: wall distances are clipped to
-    [-wall_clip, wall_clip] radii. dt: seconds between the data's frames (metadata.json's dt),
-    so one step of the model, which is applied to frames that far apart (see
-    LearnedSimulator.frame_stride_for); None in checkpoints written before it was recorded.
+    [-wall_clip, wall_clip] radii. obstacles: add the nearest static obstacle shape (D
+    features, gns.ops.nearest_obstacle_features), seen from obstacle_clip radii; the shapes
+    come with the data (each trajectory's, metadata.json's "obstacles"). dt: seconds between
+    the data's frames (metadata.json's dt), so one step of the model, which is applied to
+    frames that far apart (see LearnedSimulator.frame_stride_for); None in checkpoints
+    written before it was recorded.
     """
 
     dim: int
@@ -75,6 +79,8 @@ class Scene:
     gravity: tuple[float, ...] | None = None
     wall_clip: float = 1.0
     dt: float | None = None
+    obstacles: bool = False
+    obstacle_clip: float = 1.0
 
     def __post_init__(self) -> None:
         if self.dim not in (2, 3):
@@ -99,8 +105,9 @@ class Scene:
             raise ValueError(f"Scene.gravity has {len(self.gravity)} values for dim {self.dim}")
         if self.context_size < 0 or self.material_property_size < 0:
             raise ValueError("context_size and material_property_size must be >= 0")
-        if not self.wall_clip > 0:
-            raise ValueError(f"Scene.wall_clip must be positive, got {self.wall_clip}")
+        for name in ("wall_clip", "obstacle_clip"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"Scene.{name} must be positive, got {getattr(self, name)}")
         if self.dt is not None and not (math.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"Scene.dt must be a positive number of seconds, got {self.dt}")
 
@@ -146,6 +153,10 @@ class Scene:
         kinematic = config.kinematic_particle_types
         if kinematic is None:
             kinematic = tuple(metadata.kinematic_particle_types)
+        obstacles = config.obstacles
+        if obstacles is None:
+            obstacles = bool(getattr(metadata, "has_obstacles", False))
+        wall_clip = config.wall_clip or metadata.boundary_augment
         return cls(
             dim=metadata.dim,
             radius=config.radius or metadata.default_connectivity_radius,
@@ -157,8 +168,10 @@ class Scene:
             material_property_size=metadata.material_feature_len if use_material else 0,
             kinematic_particle_types=tuple(kinematic),
             gravity=gravity,
-            wall_clip=config.wall_clip or metadata.boundary_augment,
+            wall_clip=wall_clip,
             dt=metadata.dt,
+            obstacles=obstacles,
+            obstacle_clip=config.obstacle_clip or wall_clip,
         )
 
     @classmethod
@@ -174,6 +187,10 @@ class Scene:
         if len(widths) > 1:
             raise ValueError(f"trajectories disagree on the step_context width: {sorted(widths)}")
         return cls.from_metadata(dataset.metadata, sorted(types), config, widths.pop())
+
+
+# Each graph's static obstacle shapes (one sequence per graph), or None for the simulator's own.
+GraphObstacles = Sequence[Sequence[ops.Obstacle]] | None
 
 
 def _as_rows(x: Tensor | np.ndarray | float, rows: int, width: int, name: str) -> Tensor:
@@ -201,8 +218,9 @@ class LearnedSimulator(nn.Module):
     config: gns.config.Config (model, noise and normalisation sections are used here).
     statistics: metadata.json's statistics (a gns.data.Metadata or Statistics); required when
         config.normalization.source == "metadata", ignored otherwise.
-    obstacles: static gns.Obstacle shapes; each adds its clipped distance vector (D) per node
-        (not part of the Scene: pass the same shapes again when restoring a checkpoint).
+    obstacles: static gns.Obstacle shapes for every graph that a call gives none for (calls
+        give each graph's shapes as `obstacles`, one list per graph); they turn the scene's
+        obstacle features on. Not saved: pass them again when restoring a checkpoint.
 
     Velocities, accelerations and the context are normalised (running or metadata statistics);
     the material property is appended as given (an O(1) quantity such as tan(friction angle),
@@ -229,8 +247,10 @@ class LearnedSimulator(nn.Module):
     ) -> None:
         super().__init__()
         config = config or Config()
-        self.scene, self.config = scene, config
         self.obstacles = tuple(obstacles)
+        if self.obstacles and not scene.obstacles:
+            scene = dataclasses.replace(scene, obstacles=True)
+        self.scene, self.config = scene, config
         dim, model_config = scene.dim, config.model
         if model_config.add_gravity and scene.gravity is None:
             raise ValueError("model.add_gravity needs the scene's gravity (scene.gravity)")
@@ -272,7 +292,7 @@ class LearnedSimulator(nn.Module):
         self.node_input_size = (
             model_config.velocity_history * dim
             + 2 * len(scene.wall_axes)
-            + dim * len(self.obstacles)
+            + (dim if scene.obstacles else 0)
             + (scene.context_size - global_size)
             + scene.material_property_size
             + embedding_size
@@ -441,6 +461,7 @@ class LearnedSimulator(nn.Module):
         material_property: Tensor | None = None,
         *,
         mark: Callable[[str], None] | None = None,
+        obstacles: GraphObstacles = None,
     ) -> dict[str, Tensor | None]:
         """The model's inputs: node_features, edge_features, senders, receivers,
         global_features (None unless the model has a global latent and the scene a context).
@@ -448,6 +469,8 @@ class LearnedSimulator(nn.Module):
         radius, then their length; CConv reads its kernel coordinates from the first D columns.
 
         mark: called with "graph" once the radius graph is built (see predict_positions).
+        obstacles: each graph's static obstacle shapes (G lists of gns.Obstacle), for a scene
+        with obstacle features; None gives every graph the simulator's own (its constructor's).
 
         Every tensor of the result is on the positions' device. The Rust core (radius graph,
         wall and obstacle distances) reads host memory: the most recent positions are copied
@@ -479,8 +502,8 @@ class LearnedSimulator(nn.Module):
             )
             columns = [*self.scene.wall_axes, *(dim + a for a in self.scene.wall_axes)]
             distances.append(walls[:, columns])
-        if self.obstacles:
-            distances.append(ops.obstacle_features(host, self.obstacles, self.scene.radius))
+        if self.scene.obstacles:
+            distances.append(self._obstacle_features(host, n_node, n_graphs, obstacles))
         if distances:
             nodes.append(torch.cat(distances, dim=-1).to(device, dtype))
 
@@ -516,6 +539,31 @@ class LearnedSimulator(nn.Module):
             "global_features": global_features,
         }
 
+    def _obstacle_features(
+        self, host: Tensor, n_node: Tensor | None, n_graphs: int, obstacles: GraphObstacles
+    ) -> Tensor:
+        """(N, D) nearest-obstacle features, graph by graph: each graph has its own shapes."""
+        if obstacles is None:
+            if not self.obstacles:
+                raise ValueError(
+                    "this model has obstacle features (scene.obstacles): pass each graph's "
+                    "obstacle shapes as `obstacles` (a dataset's come from its metadata.json)"
+                )
+            obstacles = [self.obstacles] * n_graphs
+        if len(obstacles) != n_graphs:
+            raise ValueError(
+                f"obstacles must give the shapes of each of the {n_graphs} graphs (a list per "
+                f"graph), got {len(obstacles)} lists"
+            )
+        counts = [host.shape[0]] if n_node is None else n_node.tolist()
+        parts = [
+            ops.nearest_obstacle_features(
+                part, shapes, self.scene.radius, clip=self.scene.obstacle_clip
+            )
+            for part, shapes in zip(torch.split(host, counts), obstacles, strict=True)
+        ]
+        return torch.cat(parts)
+
     @staticmethod
     def _per_node(per_graph: Tensor, n_node: Tensor | None, n: int) -> Tensor:
         if n_node is None:
@@ -534,10 +582,18 @@ class LearnedSimulator(nn.Module):
         material_property: Tensor | None = None,
         *,
         mark: Callable[[str], None] | None = None,
+        obstacles: GraphObstacles = None,
     ) -> Tensor:
-        """The predicted normalised acceleration (N, D). mark: see predict_positions."""
+        """The predicted normalised acceleration (N, D). mark: see predict_positions;
+        obstacles: see features."""
         f = self.features(
-            position_sequence, particle_type, n_node, context, material_property, mark=mark
+            position_sequence,
+            particle_type,
+            n_node,
+            context,
+            material_property,
+            mark=mark,
+            obstacles=obstacles,
         )
         if mark is not None:
             mark("features")
@@ -562,6 +618,7 @@ class LearnedSimulator(nn.Module):
         material_property: Tensor | None = None,
         *,
         mark: Callable[[str], None] | None = None,
+        obstacles: GraphObstacles = None,
     ) -> Tensor:
         """The next positions (N, D), at least float32: one step of the simulator, and the one
         place a step is put together (gns.rollout runs every step through here).
@@ -574,9 +631,16 @@ class LearnedSimulator(nn.Module):
 
         mark: called with the name of each of these parts as it ends (gns.rollout.TIMING_PARTS,
         in that order), so that a caller can time them without assembling the step itself.
+        obstacles: each graph's static obstacle shapes (see features).
         """
         normalized = self(
-            position_sequence, particle_type, n_node, context, material_property, mark=mark
+            position_sequence,
+            particle_type,
+            n_node,
+            context,
+            material_property,
+            mark=mark,
+            obstacles=obstacles,
         )
         next_position = self.decoder_postprocess(normalized, position_sequence)
         if mark is not None:
@@ -678,6 +742,7 @@ class LearnedSimulator(nn.Module):
         material_property: Tensor | None = None,
         *,
         update_statistics: bool | None = None,
+        obstacles: GraphObstacles = None,
     ) -> tuple[Tensor, Tensor]:
         """One training example: (predicted, target) normalised accelerations (N, D).
 
@@ -695,5 +760,7 @@ class LearnedSimulator(nn.Module):
         if self.training if update_statistics is None else update_statistics:
             self.update_statistics(noisy, acceleration, particle_type, n_node, context)
         target = self.acceleration_normalizer.normalize(acceleration)
-        predicted = self(noisy, particle_type, n_node, context, material_property)
+        predicted = self(
+            noisy, particle_type, n_node, context, material_property, obstacles=obstacles
+        )
         return predicted, target

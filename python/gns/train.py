@@ -43,7 +43,7 @@ from torch import Tensor, nn
 from gns.augment import check_mirror_axes, mirror_batch
 
 # Re-exported: gns.train.batch_tensors is where callers have always found it.
-from gns.batches import batch_tensors
+from gns.batches import batch_obstacles, batch_tensors
 from gns.checkpoints import (
     CHECKPOINT_FORMAT,
     choose_checkpoint,
@@ -62,7 +62,7 @@ from gns.data.windows import Batch, WindowSampler
 from gns.device import resolve_device
 from gns.files import atomic_file
 from gns.normalization import RunningNormalizer
-from gns.simulator import LearnedSimulator, Scene
+from gns.simulator import GraphObstacles, LearnedSimulator, Scene
 from gns.threads import thread_tuner
 from gns.train_log import Progress, RunLog, SpikeReport
 from gns.validation import better_validation, validate, validation_trajectories
@@ -121,6 +121,7 @@ class TrainingStep(nn.Module):
         material_property: Tensor | None = None,
         later_positions: Tensor | None = None,
         pushforward: int = 0,
+        obstacles: GraphObstacles = None,
     ) -> tuple[Tensor, Tensor]:
         simulator = self.simulator
         if pushforward:
@@ -135,6 +136,7 @@ class TrainingStep(nn.Module):
                 n_node,
                 context,
                 material_property,
+                obstacles,
             )
             later_positions = None
         predicted, target = simulator.predict_accelerations(
@@ -145,6 +147,7 @@ class TrainingStep(nn.Module):
             n_node,
             context,
             material_property,
+            obstacles=obstacles,
         )
         free = ~simulator.kinematic_mask(particle_type)
         squared = (predicted.float() - target.float()).square().sum(dim=-1)
@@ -155,7 +158,9 @@ class TrainingStep(nn.Module):
             for k in range(later_positions.shape[1]):
                 sequence = _moved_on(simulator, sequence, predicted, truth, kinematic)
                 truth = later_positions[:, k]
-                predicted = simulator(sequence, particle_type, n_node, context, material_property)
+                predicted = simulator(
+                    sequence, particle_type, n_node, context, material_property, obstacles=obstacles
+                )
                 target = simulator.target_normalized_acceleration(
                     truth, sequence, position_sequence_noise
                 )
@@ -174,6 +179,7 @@ class TrainingStep(nn.Module):
         n_node: Tensor | None,
         context: Tensor | None,
         material_property: Tensor | None,
+        obstacles: GraphObstacles,
     ) -> tuple[Tensor, Tensor]:
         """(input sequence, its next ground-truth frame) after the model's own `steps` steps
         from the noisy input. The sequence is returned less the noise, which the caller adds
@@ -183,7 +189,9 @@ class TrainingStep(nn.Module):
         sequence = position_sequence + position_sequence_noise
         truth = next_position
         for k in range(steps):
-            predicted = simulator(sequence, particle_type, n_node, context, material_property)
+            predicted = simulator(
+                sequence, particle_type, n_node, context, material_property, obstacles=obstacles
+            )
             sequence = _moved_on(simulator, sequence, predicted, truth, kinematic)
             truth = later_positions[:, k]
         return sequence - position_sequence_noise, truth
@@ -582,6 +590,7 @@ def train(
                 t["material_property"],
                 later_positions=targets[:, 1:] if tc.loss_steps > 1 or unroll else None,
                 pushforward=unroll,
+                obstacles=batch_obstacles(batch),
             )
             count = count.to(squared_sum.dtype)
             if world > 1:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -29,7 +30,7 @@ from gns.data.dataset import available_splits, open_dataset
 from gns.data.deepmind import write_tfrecord
 from gns.data.errors import DatasetError
 from gns.data.h5 import write_h5
-from gns.data.metadata import Metadata
+from gns.data.metadata import Metadata, obstacles_json
 from gns.data.npz import write_npz
 from gns.data.stats import StatisticsAccumulator
 from gns.data.stride import at_frame_stride, frames_at_stride
@@ -116,6 +117,9 @@ def convert(
     counts: dict[str, int] = {}
     accumulator: StatisticsAccumulator | None = None
     has_context = has_material = False
+    # A trajectory's key is its index in the written file, which the frame stride changes:
+    # metadata.json's obstacles are keyed anew as the trajectories are written.
+    obstacles: dict[str, dict[str, list[dict[str, Any]]]] = {}
     try:
         with atomic_folder(dst) as tmp:
             for split in chosen:
@@ -132,7 +136,10 @@ def convert(
                     split: str = split,
                 ) -> Iterator[Trajectory]:
                     nonlocal has_context, has_material
-                    for trajectory in _strided(dataset, split, frame_stride):
+                    for index, trajectory in enumerate(_strided(dataset, split, frame_stride)):
+                        if trajectory.obstacles is not None:
+                            shapes = obstacles_json(trajectory.obstacles)
+                            obstacles.setdefault(split, {})[str(index)] = shapes
                         adapted = adapt(trajectory, to)
                         has_context |= adapted.step_context is not None
                         has_material |= adapted.material_property is not None
@@ -143,6 +150,8 @@ def convert(
                 counts[split] = _writer(to)(tmp / f"{split}{_SUFFIX[to]}", stream())
             assert metadata is not None
             metadata = _target_metadata(metadata, accumulator, has_context, has_material)
+            if metadata.has_obstacles:
+                metadata = metadata.replace(extra={**metadata.extra, "obstacles": obstacles})
             metadata.write_json(tmp / "metadata.json")
     except FileExistsError as err:
         raise DatasetError(dst, str(err)) from err

@@ -12,6 +12,7 @@ from beside it. Trajectories are read from disk when indexed, never all at once.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Iterable, Iterator, Sequence
@@ -59,6 +60,7 @@ class Dataset(Sequence[Trajectory]):
         self.split = split
         self.metadata = metadata
         self.source = source
+        self._obstacles = metadata.obstacles(split)
 
     @property
     def layout(self) -> str:
@@ -92,6 +94,15 @@ class Dataset(Sequence[Trajectory]):
                 f"{self.metadata.dim}",
                 index,
             )
+        if self._obstacles is not None:
+            if trajectory.key not in self._obstacles:
+                raise DatasetError(
+                    trajectory.source,
+                    f"metadata.json's obstacles have no entry for trajectory key "
+                    f"{trajectory.key} of the {self.split} split",
+                    index,
+                )
+            trajectory = dataclasses.replace(trajectory, obstacles=self._obstacles[trajectory.key])
         return trajectory
 
     def __iter__(self) -> Iterator[Trajectory]:

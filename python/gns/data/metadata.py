@@ -14,6 +14,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from gns.data.errors import DatasetError
 from gns.files import write_json_atomic
 from gns.periodic import period_of
@@ -227,11 +229,70 @@ class Metadata:
         return period_of(self.bounds, self.periodic_boundary_conditions)
 
     @property
+    def has_obstacles(self) -> bool:
+        """metadata.json has an "obstacles" entry (static shapes per trajectory)."""
+        return "obstacles" in self.extra
+
+    def obstacles(self, split: str) -> dict[int, tuple[np.ndarray, ...]] | None:
+        """The static obstacle shapes of each trajectory of `split`, by trajectory key: polylines
+        as (K, dim) float64 vertex arrays, K >= 2. None when the metadata has no "obstacles";
+        a split it has no entry for has none ({}). The layout, written by `gns generate`:
+
+            "obstacles": {"train": {"0": [{"polyline": [[x, y], [x, y], ...]}, ...], ...}, ...}
+        """
+        if not self.has_obstacles:
+            return None
+        entry = self.extra["obstacles"]
+
+        def fail(problem: str) -> DatasetError:
+            return DatasetError(self.source, f"metadata's obstacles: {problem}")
+
+        if not isinstance(entry, Mapping):
+            raise fail(f"expected {{split: {{key: [shapes]}}}}, got {type(entry).__name__}")
+        per_key = entry.get(split, {})
+        if not isinstance(per_key, Mapping):
+            raise fail(f"{split!r} must map trajectory keys to shape lists")
+        out: dict[int, tuple[np.ndarray, ...]] = {}
+        for key, shapes in per_key.items():
+            try:
+                index = int(key)
+            except ValueError as err:
+                raise fail(f"{split!r} has the key {key!r}; expected a trajectory key") from err
+            if not isinstance(shapes, list):
+                raise fail(f"{split!r} trajectory {key}: expected a list of shapes")
+            polylines = []
+            for k, shape in enumerate(shapes):
+                if not (isinstance(shape, Mapping) and set(shape) == {"polyline"}):
+                    raise fail(
+                        f"{split!r} trajectory {key} shape {k} is {shape!r}; expected "
+                        '{"polyline": [[x, y], ...]}'
+                    )
+                try:
+                    vertices = np.asarray(shape["polyline"], dtype=np.float64)
+                except (TypeError, ValueError) as err:
+                    raise fail(f"{split!r} trajectory {key} shape {k}: {err}") from err
+                if vertices.ndim != 2 or vertices.shape[0] < 2 or vertices.shape[1] != self.dim:
+                    raise fail(
+                        f"{split!r} trajectory {key} shape {k} has vertices of shape "
+                        f"{vertices.shape}; expected (K >= 2, {self.dim})"
+                    )
+                if not np.isfinite(vertices).all():
+                    raise fail(f"{split!r} trajectory {key} shape {k} has non-finite vertices")
+                polylines.append(vertices)
+            out[index] = tuple(polylines)
+        return out
+
+    @property
     def has_statistics(self) -> bool:
         return all(getattr(self, name) is not None for name in STATISTICS_KEYS)
 
     def replace(self, **changes: Any) -> Metadata:
         return dataclasses.replace(self, **changes)
+
+
+def obstacles_json(polylines: Sequence[Any]) -> list[dict[str, Any]]:
+    """One trajectory's entry in metadata.json's "obstacles": each polyline's vertices."""
+    return [{"polyline": np.asarray(v, dtype=np.float64).tolist()} for v in polylines]
 
 
 def _as_list(value: Any) -> Sequence[Any]:

@@ -107,6 +107,7 @@ def at_frame_stride(trajectory: Trajectory, stride: int, *, phase: int = 0) -> T
         trajectory.material_property,
         key=trajectory.key,
         source=trajectory.source,
+        obstacles=trajectory.obstacles,
     )
 
 

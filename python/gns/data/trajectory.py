@@ -18,6 +18,8 @@ class Trajectory:
     step_context: (T, C) float32 global features per frame, or None.
     material_property: () or (N,) float32 (geoelements' per-trajectory material feature), or None.
     key: the trajectory's index in its split; source: the file it came from.
+    obstacles: static obstacle shapes, polylines as (K, D) vertex arrays (metadata.json's
+        "obstacles", attached by gns.data.Dataset), or None.
 
     Construction converts dtypes and rejects wrong shapes, inconsistent particle counts and
     non-finite values with a DatasetError naming `source` and `key`.
@@ -29,6 +31,7 @@ class Trajectory:
     material_property: np.ndarray | None = None
     key: int = 0
     source: str = "<memory>"
+    obstacles: tuple[np.ndarray, ...] | None = None
 
     def __post_init__(self) -> None:
         def fail(problem: str) -> DatasetError:
@@ -80,6 +83,13 @@ class Trajectory:
             material = np.array(material, dtype=np.float32, order="C")  # keeps 0-d shape
             if not np.isfinite(material).all():
                 raise fail("material_property holds non-finite values")
+
+        if self.obstacles is not None:
+            polylines = tuple(np.asarray(v, dtype=np.float64) for v in self.obstacles)
+            for k, v in enumerate(polylines):
+                if v.ndim != 2 or v.shape[0] < 2 or v.shape[1] != d or not np.isfinite(v).all():
+                    raise fail(f"obstacle {k} must be finite (K >= 2, {d}) vertices, got {v.shape}")
+            object.__setattr__(self, "obstacles", polylines)
 
         object.__setattr__(self, "positions", positions)
         object.__setattr__(self, "particle_type", types)

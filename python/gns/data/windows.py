@@ -28,6 +28,7 @@ class Window:
     positions: (input_sequence_length + 1, N, D) float32; the last frame is the target.
     particle_type: (N,) int64. step_context: (C,) float32, taken at the last input frame.
     material_property: () or (N,) float32. trajectory / start: where the window came from.
+    obstacles: the trajectory's static obstacle polylines, or None.
     """
 
     positions: np.ndarray
@@ -36,6 +37,7 @@ class Window:
     material_property: np.ndarray | None
     trajectory: int
     start: int
+    obstacles: tuple[np.ndarray, ...] | None = None
 
     @property
     def input_positions(self) -> np.ndarray:
@@ -94,6 +96,7 @@ def trajectory_windows(
             material_property=trajectory.material_property,
             trajectory=trajectory.key,
             start=start,
+            obstacles=trajectory.obstacles,
         )
 
 
@@ -155,6 +158,7 @@ class Batch:
     step_context: (B, C) float32 or None.
     material_property: (sum(n_node),) float32 (scalars broadcast per particle) or None.
     trajectory, start: (B,) int64 provenance of each graph.
+    obstacles: each graph's obstacle polylines (B entries), or None when no window has any.
     """
 
     positions: np.ndarray
@@ -164,6 +168,7 @@ class Batch:
     material_property: np.ndarray | None
     trajectory: np.ndarray
     start: np.ndarray
+    obstacles: tuple[tuple[np.ndarray, ...], ...] | None = None
 
     @property
     def num_graphs(self) -> int:
@@ -190,6 +195,9 @@ def collate(windows: Sequence[Window]) -> Batch:
                 if w.material_property is not None
             ]
         ).astype(np.float32)
+    obstacles = None
+    if any(w.obstacles is not None for w in windows):
+        obstacles = tuple(w.obstacles or () for w in windows)
     return Batch(
         positions=np.concatenate([w.positions for w in windows], axis=1),
         particle_type=np.concatenate([w.particle_type for w in windows]),
@@ -198,6 +206,7 @@ def collate(windows: Sequence[Window]) -> Batch:
         material_property=material,
         trajectory=np.array([w.trajectory for w in windows], dtype=np.int64),
         start=np.array([w.start for w in windows], dtype=np.int64),
+        obstacles=obstacles,
     )
 
 
