@@ -503,14 +503,16 @@ fn mpm_material(
 
 /// mpm_simulate(positions, velocities, material, materials, particle_volume, frames, *, grid,
 /// bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps, progress=None,
-/// threads=None) -> (positions (frames, N, D) float32, seconds (frames - 1,), substeps
-/// (frames - 1,)). D (2 or 3) is the width of positions; bounds holds D pairs [lo, hi] and
-/// gravity D values. progress(frame) after every frame; threads(seconds) after every frame,
-/// returning 1 to run the next frame on one thread, anything else for all.
+/// threads=None, frame_gravity=None) -> (positions (frames, N, D) float32, seconds
+/// (frames - 1,), substeps (frames - 1,)). D (2 or 3) is the width of positions; bounds holds
+/// D pairs [lo, hi] and gravity D values. progress(frame) after every frame; threads(seconds)
+/// after every frame, returning 1 to run the next frame on one thread, anything else for all.
+/// frame_gravity: (frames - 1, D) float array whose row k replaces gravity for every substep
+/// of frame k -> k + 1 (a shaken container simulated in its own frame).
 #[pyfunction]
 #[pyo3(signature = (positions, velocities, material, materials, particle_volume, frames, *,
                     grid, bounds, wall, wall_friction, gravity, frame_dt, cfl, max_substeps,
-                    progress=None, threads=None))]
+                    progress=None, threads=None, frame_gravity=None))]
 #[allow(clippy::too_many_arguments)]
 fn mpm_simulate(
     py: Python<'_>,
@@ -530,6 +532,7 @@ fn mpm_simulate(
     max_substeps: usize,
     progress: Option<Py<PyAny>>,
     threads: Option<Py<PyAny>>,
+    frame_gravity: Option<Bound<'_, PyAny>>,
 ) -> PyResult<Py<PyAny>> {
     let materials = materials
         .into_iter()
@@ -557,12 +560,32 @@ fn mpm_simulate(
             )));
         }
     }
+    let frame_gravity = match &frame_gravity {
+        None => None,
+        Some(obj) => {
+            let rows = Floats::extract("frame_gravity", obj)?;
+            let shape = [frames.saturating_sub(1), dim];
+            let (got, values) = match &rows {
+                Floats::F32(a) => (a.shape(), slice(a)?.iter().map(|&g| g as f64).collect()),
+                Floats::F64(a) => (a.shape(), slice(a)?.to_vec()),
+            };
+            if got != shape {
+                return Err(PyValueError::new_err(format!(
+                    "frame_gravity must have shape (frames - 1, D) = ({}, {dim}), one row of D \
+                     values (the width of positions) per simulated frame; got ({}, {})",
+                    shape[0], got[0], got[1]
+                )));
+            }
+            Some(values)
+        }
+    };
     let run = MpmRun {
         materials,
         wall,
         grid,
         bounds,
         gravity,
+        frame_gravity,
         frame_dt,
         cfl,
         max_substeps,
@@ -587,6 +610,8 @@ struct MpmRun<'a> {
     grid: usize,
     bounds: Vec<Vec<f64>>,
     gravity: Vec<f64>,
+    /// (frames - 1, D) row-major, its shape checked.
+    frame_gravity: Option<Vec<f64>>,
     frame_dt: f64,
     cfl: f64,
     max_substeps: usize,
@@ -629,6 +654,12 @@ impl MpmRun<'_> {
             bounds,
             wall: self.wall,
             gravity,
+            frame_gravity: self.frame_gravity.as_ref().map(|values| {
+                values
+                    .chunks_exact(D)
+                    .map(|row| std::array::from_fn(|a| row[a]))
+                    .collect()
+            }),
             frame_dt: self.frame_dt,
             cfl: self.cfl,
             max_substeps: self.max_substeps,

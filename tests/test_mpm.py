@@ -8,7 +8,20 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from data_helpers import SAND as SAND2D
-from gns.mpm import Block, Goop, MpmScene, Sand, Segment, Water, particles, simulate
+from gns import _core
+from gns.mpm import (
+    Block,
+    Goop,
+    MpmResult,
+    MpmScene,
+    Rigid,
+    Sand,
+    Segment,
+    Shake,
+    Water,
+    particles,
+    simulate,
+)
 
 G_FRAME = -9.81 * 0.0025**2  # free fall per frame^2
 
@@ -196,3 +209,109 @@ def test_given_positions_outside_every_block_are_refused_by_name():
     # One volume for all: blocks filled at different densities would get the wrong masses.
     with pytest.raises(ValueError, match="different densities"):
         particles(scene, positions=np.vstack([points[:2], [[0.45, 0.15], [0.55, 0.25]]]))
+
+
+# ------------------------------------------------------------------- per-frame gravity, Shake
+
+
+def core_run(scene: MpmScene, frames: int, **extra):
+    """mpm_simulate on the scene's lattice, as simulate calls it, plus `extra`."""
+    start = particles(scene)
+    assert scene.bounds is not None and scene.gravity is not None
+    return _core.mpm_simulate(
+        start["positions"],
+        start["velocities"],
+        start["material"],
+        [m.core() for m in start["materials"]],
+        start["particle_volume"],
+        frames,
+        grid=scene.grid,
+        bounds=[list(b) for b in scene.bounds],
+        wall=scene.wall,
+        wall_friction=scene.wall_friction,
+        gravity=list(scene.gravity),
+        frame_dt=scene.frame_dt,
+        cfl=scene.cfl,
+        max_substeps=scene.max_substeps,
+        **extra,
+    )
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_frame_gravity_equal_to_gravity_is_the_constant_gravity_run_bit_for_bit(dim):
+    # Thrown at a wall and with a rigid body, so walls and bodies are part of the run.
+    blocks = [
+        Block(Water(), (0.12,) * dim, (0.2,) * dim, (-1.0, 0.5, 0.3)[:dim]),
+        Block(Rigid(), (0.5,) * dim, (0.1,) * dim, (0.5, 0.0, 0.0)[:dim]),
+    ]
+    # Gravity -9.75, exact in float32 too, so that float32 rows give the same run.
+    gravity = (0.0, -9.75, 0.0)[:dim]
+    scene = MpmScene(blocks, grid=32 if dim == 2 else 24, gravity=gravity)
+    frames = 25
+    constant = core_run(scene, frames)
+    rows = np.tile(np.asarray(scene.gravity, np.float64), (frames - 1, 1))
+    per_frame = core_run(scene, frames, frame_gravity=rows)
+    for a, b in zip(constant, per_frame, strict=True):
+        if a.dtype != np.float64:  # seconds differ, positions and substeps must not
+            np.testing.assert_array_equal(a, b)
+    # float32 rows of the same values are the same run too.
+    np.testing.assert_array_equal(
+        core_run(scene, frames, frame_gravity=rows.astype(np.float32))[0], constant[0]
+    )
+
+
+def test_bad_frame_gravity_is_refused_by_name():
+    scene = MpmScene([Block(Water(), (0.4, 0.5), (0.05, 0.05))])
+    good = np.tile([0.0, -9.81], (4, 1))
+    shape = r"frame_gravity must have shape \(frames - 1, D\) = \(4, 2\)"
+    with pytest.raises(ValueError, match=shape + r".*got \(5, 2\)"):
+        core_run(scene, 5, frame_gravity=np.tile([0.0, -9.81], (5, 1)))
+    with pytest.raises(ValueError, match=shape + r".*got \(4, 3\)"):
+        core_run(scene, 5, frame_gravity=np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="frame_gravity must be a 2-D float32 or float64"):
+        core_run(scene, 5, frame_gravity=np.array([0.0, -9.81]))
+    with pytest.raises(ValueError, match="frame_gravity must be C-contiguous"):
+        core_run(scene, 5, frame_gravity=np.asfortranarray(good))
+    for bad in (np.nan, np.inf):
+        rows = good.copy()
+        rows[2, 1] = bad
+        with pytest.raises(ValueError, match=r"frame_gravity\[2, 1\] = (NaN|inf) is not finite"):
+            core_run(scene, 5, frame_gravity=rows)
+    assert core_run(scene, 5, frame_gravity=good)[0].shape[0] == 5
+
+
+def test_a_shake_gives_the_containers_motion_per_frame_and_only_one_context_source():
+    water = [Block(Water(), (0.3, 0.4), (0.1, 0.1))]
+    shake = Shake(amplitude=0.02, frequency_hz=2.0, phase=0.5)
+    result = simulate(MpmScene(water, shake=shake), 6)
+    t = np.arange(6) * 0.0025
+    omega = 2 * np.pi * 2.0
+    expected = np.zeros((6, 6))
+    expected[:, 0] = 0.02 * np.sin(omega * t + 0.5)
+    expected[:, 2] = 0.02 * omega * np.cos(omega * t + 0.5)
+    expected[:, 4] = -0.02 * omega**2 * np.sin(omega * t + 0.5)
+    assert result.context.shape == (6, 6) and result.context.dtype == np.float32
+    np.testing.assert_allclose(result.context, expected, rtol=1e-6, atol=1e-9)
+    # A per-frame context is the trajectory's step context as is; a per-trajectory one tiled.
+    np.testing.assert_array_equal(result.to_trajectory().step_context, result.context)
+    fixed = simulate(MpmScene(water, context=[0.5, 2.0]), 4).to_trajectory().step_context
+    np.testing.assert_array_equal(fixed, np.tile(np.float32([0.5, 2.0]), (4, 1)))
+    wrong = MpmResult(result.positions, result.particle_type, result.seconds, result.substeps,
+                      result.context[:-1])  # fmt: skip
+    with pytest.raises(ValueError, match=r"\(frames, K\) = \(6, K\) per frame, got shape"):
+        wrong.to_trajectory()
+    # 3D: shaken along z, the context is (frames, 9).
+    cube = [Block(Water(), (0.4, 0.5, 0.4), (0.1, 0.1, 0.1))]
+    context = simulate(MpmScene(cube, grid=24, shake=Shake(0.01, 1.0, axis=2)), 3).context
+    assert context.shape == (3, 9) and not np.delete(context, [2, 5, 8], axis=1).any()
+
+    with pytest.raises(ValueError, match="both shake = .* and context = "):
+        MpmScene(water, shake=shake, context=[1.0])
+    with pytest.raises(ValueError, match=r"Shake.axis = 2 but the scene is 2D"):
+        MpmScene(water, shake=Shake(0.02, 2.0, axis=2))
+    with pytest.raises(ValueError, match="Shake.frequency_hz must be > 0, got 0"):
+        Shake(0.02, 0.0)
+    with pytest.raises(ValueError, match="Shake.amplitude must be finite, got nan"):
+        Shake(float("nan"), 1.0)
+    with pytest.raises(ValueError, match="Shake.amplitude must be >= 0"):
+        Shake(-0.01, 1.0)

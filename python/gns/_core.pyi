@@ -104,4 +104,5 @@ def mpm_simulate(
     max_substeps: int,
     progress: Callable[[int], object] | None = None,
     threads: Callable[[float], int] | None = None,
+    frame_gravity: npt.NDArray[np.floating[Any]] | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64], npt.NDArray[np.uint32]]: ...

@@ -90,6 +90,11 @@ pub struct Settings<const D: usize = 2> {
     pub bounds: [[f64; 2]; D],
     pub wall: Wall,
     pub gravity: Vector<D>,
+    /// Gravity per frame, replacing `gravity`: row k is used for every substep of frame
+    /// k -> k + 1, so `simulate` wants frames - 1 rows. A container shaken with acceleration
+    /// a_c(t) is simulated in its own frame, where its walls are at rest and the fictitious
+    /// force adds -a_c(t) to gravity. None: `gravity` for every frame.
+    pub frame_gravity: Option<Vec<Vector<D>>>,
     /// Seconds between saved frames.
     pub frame_dt: f64,
     /// dt_sub <= cfl * dx / (c + |v|max), c the fastest wave speed among the materials.
@@ -112,10 +117,20 @@ where
             bounds: [[0.1, 0.9]; D],
             wall: Wall::Coulomb(0.5),
             gravity,
+            frame_gravity: None,
             frame_dt: 0.0025,
             cfl: 0.4,
             max_substeps: 2000,
         }
+    }
+}
+
+impl<const D: usize> Settings<D> {
+    /// The gravity of frame k -> k + 1.
+    fn gravity_of(&self, k: usize) -> Vector<D> {
+        self.frame_gravity
+            .as_ref()
+            .map_or(self.gravity, |rows| rows[k])
     }
 }
 
@@ -253,6 +268,7 @@ where
         material,
         particle_volume,
     )?;
+    check_frame_gravity(settings, frames)?;
     let mut sim = Mpm::new(
         settings,
         materials,
@@ -271,8 +287,9 @@ where
     let mut one_thread: Option<rayon::ThreadPool> = None;
     for frame in 1..frames {
         let start = Instant::now();
+        let gravity = settings.gravity_of(frame - 1);
         let advanced = match threads {
-            Threads::All => sim.advance_frame(),
+            Threads::All => sim.advance_frame(gravity),
             Threads::One => {
                 if one_thread.is_none() {
                     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build();
@@ -281,7 +298,7 @@ where
                     })?);
                 }
                 let pool = one_thread.as_ref().expect("made above");
-                pool.install(|| sim.advance_frame())
+                pool.install(|| sim.advance_frame(gravity))
             }
         };
         let substeps = advanced.map_err(|e| match e {
@@ -382,6 +399,30 @@ fn check_inputs<const D: usize>(
                 "particle {i} at {p:?} is outside the simulation domain [{}, {}]^{D}",
                 1.5 * dx,
                 1.0 - 1.5 * dx
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// frame_gravity, when given: one finite row per simulated frame.
+fn check_frame_gravity<const D: usize>(s: &Settings<D>, frames: usize) -> Result<()> {
+    let Some(rows) = &s.frame_gravity else {
+        return Ok(());
+    };
+    if rows.len() != frames - 1 {
+        return Err(Error::Shape(format!(
+            "frame_gravity must have frames - 1 = {} rows (row k the gravity of frame k -> k + \
+             1), got {}",
+            frames - 1,
+            rows.len()
+        )));
+    }
+    for (k, row) in rows.iter().enumerate() {
+        if let Some(a) = row.iter().position(|g| !g.is_finite()) {
+            return Err(Error::NonFinite(format!(
+                "frame_gravity[{k}, {a}] = {} is not finite (row {k}: {row:?})",
+                row[a]
             )));
         }
     }

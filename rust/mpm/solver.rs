@@ -193,8 +193,9 @@ where
         }
     }
 
-    /// Advances one frame; returns the number of substeps it took.
-    pub(super) fn advance_frame(&mut self) -> Result<u32> {
+    /// Advances one frame under `gravity` (held over the frame's substeps); returns the number
+    /// of substeps it took.
+    pub(super) fn advance_frame(&mut self, gravity: Vector<D>) -> Result<u32> {
         let mut t = 0.0;
         let mut substeps = 0u32;
         while t < self.s.frame_dt * (1.0 - 1e-12) {
@@ -208,7 +209,7 @@ where
             }
             let bound = self.s.cfl * self.dx / (self.wave_speed + self.max_speed());
             let dt = bound.min(self.s.frame_dt - t);
-            self.substep(dt)?;
+            self.substep(dt, &gravity)?;
             t += dt;
             substeps += 1;
         }
@@ -222,9 +223,9 @@ where
             .reduce(|| 0.0, f64::max)
     }
 
-    fn substep(&mut self, dt: f64) -> Result<()> {
+    fn substep(&mut self, dt: f64, gravity: &Vector<D>) -> Result<()> {
         self.particles_to_grid(dt);
-        self.update_grid(dt);
+        self.update_grid(dt, gravity);
         self.grid_to_particles(dt)?;
         self.move_bodies(dt)
     }
@@ -288,7 +289,7 @@ where
         self.grid = grid;
     }
 
-    fn update_grid(&mut self, dt: f64) {
+    fn update_grid(&mut self, dt: f64, gravity: &Vector<D>) {
         let nodes = self.nodes;
         let dx = self.dx;
         let s = self.s;
@@ -298,7 +299,7 @@ where
                 return;
             }
             let mut v: Vector<D> =
-                std::array::from_fn(|a| node.momentum[a] / node.mass + dt * s.gravity[a]);
+                std::array::from_fn(|a| node.momentum[a] / node.mass + dt * gravity[a]);
             if solid[i] {
                 v = [0.0; D];
             }

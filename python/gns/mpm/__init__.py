@@ -17,6 +17,14 @@ scene, a rigid box dropped into water:
                       Block(Rigid(), (0.4, 0.5, 0.4), (0.15, 0.15, 0.15))], grid=32)
     simulate(scene, frames=200).positions  # (200, N, 3)
 
+A container shaken side to side (the paper's FLUIDSHAKE) is simulated in its own frame, where
+its walls are at rest and the shaking is a fictitious force -a_c(t) added to gravity; the
+positions are in the container's frame and the result's context gives, at every frame, the
+container's position, velocity and acceleration (the paper's 6 global features in 2D):
+
+    scene = MpmScene([Block(Water(), (0.2, 0.1), (0.3, 0.2))], shake=Shake(0.02, 2.0))
+    simulate(scene, frames=100).context  # (100, 6): x, y, vx, vy, ax, ay of the container
+
 Accuracy against cost is set by `grid` (cells per unit length), `particles_per_cell` (the
 lattice spacing is dx / particles_per_cell^(1/D)) and `cfl` (substeps). Instead of the lattice,
 the blocks can be filled with given points, e.g. another simulator's first frame, so that
@@ -54,6 +62,7 @@ __all__ = [
     "Rigid",
     "Sand",
     "Segment",
+    "Shake",
     "Water",
     "simulate",
 ]
@@ -164,12 +173,68 @@ class Segment:
 
 
 @dataclass(frozen=True)
+class Shake:
+    """The container shaken along `axis`: its displacement is amplitude sin(2 pi frequency_hz t
+    + phase) (m, Hz, rad), t = frame * frame_dt, and zero on the other axes. The scene is
+    simulated in the container's frame, as the paper gives FLUIDSHAKE's positions: there the
+    walls are at rest and a fictitious force -a_c(t) per unit mass adds to gravity."""
+
+    amplitude: float
+    frequency_hz: float
+    phase: float = 0.0
+    axis: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("amplitude", "frequency_hz", "phase"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"Shake.{name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise ValueError(f"Shake.{name} must be finite, got {value}")
+        if self.amplitude < 0:
+            raise ValueError(f"Shake.amplitude must be >= 0 (m), got {self.amplitude}")
+        if not self.frequency_hz > 0:
+            raise ValueError(f"Shake.frequency_hz must be > 0, got {self.frequency_hz}")
+        if isinstance(self.axis, bool) or not isinstance(self.axis, int) or self.axis < 0:
+            raise ValueError(f"Shake.axis must be an axis index >= 0, got {self.axis!r}")
+
+    @property
+    def omega(self) -> float:
+        """The angular frequency 2 pi f (rad/s)."""
+        return 2.0 * math.pi * self.frequency_hz
+
+    def position(self, t: np.ndarray) -> np.ndarray:
+        """The container's displacement along `axis` at times t (s)."""
+        return self.amplitude * np.sin(self.omega * np.asarray(t, np.float64) + self.phase)
+
+    def velocity(self, t: np.ndarray) -> np.ndarray:
+        return (
+            self.amplitude
+            * self.omega
+            * np.cos(self.omega * np.asarray(t, np.float64) + self.phase)
+        )
+
+    def acceleration(self, t: np.ndarray) -> np.ndarray:
+        return -(self.omega**2) * self.position(t)
+
+    def context(self, t: np.ndarray, dim: int) -> np.ndarray:
+        """(len(t), 3 dim) float64: the container's position (dim), velocity (dim) and
+        acceleration (dim) at times t, zero on the axes it is not shaken along."""
+        t = np.asarray(t, np.float64)
+        out = np.zeros((len(t), 3 * dim))
+        for k, motion in enumerate((self.position, self.velocity, self.acceleration)):
+            out[:, k * dim + self.axis] = motion(t)
+        return out
+
+
+@dataclass(frozen=True)
 class MpmScene:
     """What to simulate and how finely. The scene is 2D or 3D as its blocks are (2D without
     blocks; obstacles, Segments, are 2D only). bounds: the walls, one (lo, hi) per axis
     (default (0.1, 0.9) on each); gravity: one value per axis (default -9.81 m/s^2 along y).
     wall: "coulomb" (friction wall_friction), "slip" or "sticky". jitter: random offset of
-    each lattice point, as a fraction of the spacing."""
+    each lattice point, as a fraction of the spacing. context: global features of the whole
+    trajectory. shake: the container shaken (Shake), which gives a per-frame context instead."""
 
     blocks: Sequence[Block]
     obstacles: Sequence[Segment] = ()
@@ -184,6 +249,7 @@ class MpmScene:
     max_substeps: int = 2000
     jitter: float = 0.0
     context: Sequence[float] | None = field(default=None)
+    shake: Shake | None = None
 
     def __post_init__(self) -> None:
         dims = {block.dim for block in self.blocks}
@@ -211,6 +277,17 @@ class MpmScene:
                 f"MpmScene.gravity = {self.gravity} must have {dim} values, one per axis of the "
                 f"scene's {dim}D blocks"
             )
+        if self.shake is not None:
+            if self.context is not None:
+                raise ValueError(
+                    f"MpmScene has both shake = {self.shake} and context = {self.context}; the "
+                    "global features come from one source: the shaken container's motion per "
+                    "frame, or a fixed context, not both"
+                )
+            if self.shake.axis >= dim:
+                raise ValueError(
+                    f"Shake.axis = {self.shake.axis} but the scene is {dim}D (axes 0-{dim - 1})"
+                )
 
     @property
     def dim(self) -> int:
@@ -234,13 +311,30 @@ class MpmResult:
     particle_type: np.ndarray  # (N,) int64
     seconds: np.ndarray  # (frames - 1,) wall-clock seconds per frame
     substeps: np.ndarray  # (frames - 1,) substeps per frame
-    context: np.ndarray | None = None  # (context width,) global features, if the scene has any
+    # Global features, if the scene has any: (K,) for the whole trajectory (MpmScene.context)
+    # or (frames, K) per frame (a Shake's container motion).
+    context: np.ndarray | None = None
 
     def to_trajectory(self, key: int = 0) -> Trajectory:
-        context = None
-        if self.context is not None:
-            context = np.tile(self.context.astype(np.float32), (len(self.positions), 1))
+        context = step_context(self.context, len(self.positions))
         return Trajectory(self.positions, self.particle_type, context, key=key)
+
+
+def step_context(context: np.ndarray | None, frames: int) -> np.ndarray | None:
+    """(frames, K) float32 per-frame global features from a context of (K,) (the same at
+    every frame: tiled) or (frames, K) (taken as is); None stays None. ValueError for any other
+    shape."""
+    if context is None:
+        return None
+    context = np.asarray(context, np.float32)
+    if context.ndim == 1:
+        return np.tile(context, (frames, 1))
+    if context.ndim == 2 and len(context) == frames:
+        return context
+    raise ValueError(
+        f"context must be (K,) for the whole trajectory or (frames, K) = ({frames}, K) per "
+        f"frame, got shape {context.shape}"
+    )
 
 
 def lattice(lower: Sequence[float], size: Sequence[float], spacing: float) -> np.ndarray:
@@ -423,7 +517,11 @@ def simulate(
     Each frame runs on all of rayon's threads or on one, whichever the frames run faster on
     (gns.threads.StepTuner): with another program on one core, waiting for the pool's second
     thread made sand frames 2-2.5x slower than one thread (benches/mpm.py on 2 cores). The
-    positions do not depend on it; RAYON_NUM_THREADS in the environment fixes the pool."""
+    positions do not depend on it; RAYON_NUM_THREADS in the environment fixes the pool.
+
+    With scene.shake the run is in the container's frame (positions there, walls at rest) under
+    gravity - a_c(t), and the result's context is the container's motion per frame (frames,
+    3 D): position, velocity and acceleration at t = frame * frame_dt."""
     start = particles(scene, seed, positions=positions, margin=margin)
     core_materials = [m.core() for m in start["materials"]]
     if scene.obstacles:
@@ -445,6 +543,25 @@ def simulate(
         max_substeps=scene.max_substeps,
         progress=progress,
         threads=_frame_threads(),
+        frame_gravity=None if scene.shake is None else _shaken_gravity(scene, frames),
     )
-    context = None if scene.context is None else np.asarray(scene.context, np.float32)
+    context: np.ndarray | None = None
+    if scene.shake is not None:
+        times = np.arange(frames) * scene.frame_dt
+        context = scene.shake.context(times, scene.dim).astype(np.float32)
+    elif scene.context is not None:
+        context = np.asarray(scene.context, np.float32)
     return MpmResult(positions, start["particle_type"], seconds, substeps, context)
+
+
+def _shaken_gravity(scene: MpmScene, frames: int) -> np.ndarray:
+    """(frames - 1, D) the gravity of each frame in the shaken container's frame, gravity -
+    a_c. a_c is taken at the middle of the frame and held over its substeps: by the midpoint
+    rule the frame's change of velocity is the integral of -a_c over the frame to a relative
+    (omega frame_dt)^2 / 24 (1.6e-4 at 4 Hz), and the core needs no notion of a shake.
+    """
+    assert scene.shake is not None and scene.gravity is not None
+    middle = (np.arange(frames - 1) + 0.5) * scene.frame_dt
+    rows = np.tile(np.asarray(scene.gravity, np.float64), (frames - 1, 1))
+    rows[:, scene.shake.axis] -= scene.shake.acceleration(middle)
+    return np.ascontiguousarray(rows)

@@ -6,7 +6,9 @@ Presets (the paper's scenes in 2D and 3D, drawn by gns.mpm.presets) are function
 rng -> (MpmScene, frames); `scale` multiplies a scene's particles by about that factor.
 
 Metadata bounds are where the simulator stops the particles (see `confinement`), the innermost
-grid nodes of its walls, not the walls' nominal position MpmScene.bounds.
+grid nodes of its walls, not the walls' nominal position MpmScene.bounds. A preset whose scenes
+have static obstacles (Segments) writes their shapes under metadata.json's "obstacles", per
+split and trajectory key, each segment a 2-vertex polyline (`obstacles`).
 
 Reproducibility: trajectory i of a split is drawn from SeedSequence(seed, spawn_key=(split,
 i, draw)), so a dataset depends on the seed and the arguments only, never on the number of
@@ -37,11 +39,11 @@ import numpy as np
 
 from gns import mpm
 from gns.data.deepmind import write_tfrecord
-from gns.data.metadata import DEFAULT_KINEMATIC_TYPES, Metadata
+from gns.data.metadata import DEFAULT_KINEMATIC_TYPES, Metadata, obstacles_json
 from gns.data.stats import StatisticsAccumulator
 from gns.data.trajectory import Trajectory
 from gns.files import atomic_file, atomic_folder, claim_folder
-from gns.mpm import MpmScene
+from gns.mpm import MpmScene, step_context
 from gns.mpm.presets import (
     PRESET_METADATA,
     PRESETS,
@@ -57,6 +59,7 @@ __all__ = [
     "Summary",
     "confinement",
     "generate",
+    "obstacles",
     "preset_scene",
 ]
 
@@ -89,6 +92,12 @@ def confinement(scene: MpmScene) -> tuple[tuple[float, float], ...]:
         below, above = np.flatnonzero(nodes < lo)[-1], np.flatnonzero(nodes > hi)[0]
         box.append((float(below / scene.grid), float(above / scene.grid)))
     return tuple(box)
+
+
+def obstacles(scene: MpmScene) -> list[dict[str, Any]]:
+    """The scene's static obstacles as metadata.json's "obstacles" lists them for one
+    trajectory: each Segment a 2-vertex polyline [start, end]."""
+    return obstacles_json([[s.start, s.end] for s in scene.obstacles])
 
 
 # ------------------------------------------------------------------------------------ progress
@@ -186,8 +195,9 @@ def _load(path: Path, index: int) -> tuple[Trajectory, int]:
     with np.load(path) as f:
         positions, types, draw = f["positions"], f["particle_type"], int(f["draw"])
         context = f["context"] if "context" in f.files else None
-    step_context = None if context is None else np.tile(context, (len(positions), 1))
-    return Trajectory(positions, types, step_context, key=index, source=str(path)), draw
+    return Trajectory(
+        positions, types, step_context(context, len(positions)), key=index, source=str(path)
+    ), draw
 
 
 def _simulate_one(
@@ -362,6 +372,7 @@ def _assemble(
     accumulator = StatisticsAccumulator(DEFAULT_KINEMATIC_TYPES)
     written: dict[str, int] = {}
     draws: dict[str, list[int]] = {}
+    shapes: dict[str, dict[str, list[dict[str, Any]]]] = {}
     lengths: set[int] = set()
     with atomic_folder(out) as tmp:
         for split, n in per_split.items():
@@ -373,6 +384,8 @@ def _assemble(
                 for index in range(n):
                     trajectory, draw = _load(_cache_path(work, split, index), index)
                     draws[split].append(draw)
+                    drawn = preset_scene(preset, seed, split, index, draw, scale)[0]
+                    shapes.setdefault(split, {})[str(trajectory.key)] = obstacles(drawn)
                     lengths.add(trajectory.num_frames)
                     if split == "train":
                         accumulator.add(trajectory)
@@ -396,7 +409,14 @@ def _assemble(
                     **PRESET_METADATA.get(preset, {}),
                     # Which draw each trajectory is (0 unless earlier draws failed).
                     "draws": {s: d for s, d in draws.items() if any(d)},
-                }
+                },
+                # The static shapes, for a reader that gives the model distances to them; only
+                # for presets with obstacles, which then have an entry for every trajectory.
+                **(
+                    {"obstacles": shapes}
+                    if any(entry for split in shapes.values() for entry in split.values())
+                    else {}
+                ),
             },
         )
         metadata = accumulator.result().apply_to(metadata)

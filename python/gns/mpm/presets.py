@@ -1,6 +1,7 @@
 """The scenes `gns generate` draws: presets rng -> (MpmScene, frames), `frames` counting frame 0,
 so that a preset's sequence_length is the paper's (WaterDrop 1000, Sand 320, Goop 400,
-WaterRamps 600, MultiMaterial 1000; SAND-3D 350, GOOP-3D 300, BOXBATH 150).
+WaterRamps 600, MultiMaterial 1000, FluidShake 2000, FluidShake-Box 1500, RandomFloor 600;
+SAND-3D 350, GOOP-3D 300, BOXBATH 150).
 
 2D (docs/reference-simulator.md):
   waterdrop      one block of water at rest, width U(0.1, 0.3), height U(0.15, 0.35)
@@ -12,6 +13,15 @@ WaterRamps 600, MultiMaterial 1000; SAND-3D 350, GOOP-3D 300, BOXBATH 150).
   waterramps, sandramps
                  the same with water only (600 frames) or sand only (400): WATERRAMPS, SANDRAMPS
   waterdrop-xl   waterdrop at 1.5 times the resolution, radius 0.01: WATERDROP-XL
+  fluidshake     1-2 blocks of water at rest in a container shaken along x (amplitude
+                 U(0.01, 0.04) m, frequency U(1, 4) Hz, phase U(0, 2 pi)), simulated and stored
+                 in the container's frame, its position, velocity and acceleration the 6 global
+                 features per frame: FLUIDSHAKE (2000 steps)
+  fluidshake-box the same with a floating rigid 0.1 x 0.1 box (particle type 0) dropped onto
+                 deeper water (blocks of side U(0.28, 0.36), so that the box floats clear of
+                 the floor): FLUIDSHAKE-BOX (1500 steps)
+  randomfloor    water blocks thrown above a random rough floor from wall to wall (a polyline
+                 of 4-8 static segments, kinematic particles): RANDOMFLOOR
   continuous     sand as above whose friction angle is drawn per trajectory from 1-80 degrees,
                  30-55 held out of the train split (the metadata says so), stored as the global
                  feature tan(angle) (DeepMind's step_context): CONTINUOUS and its figure C.5
@@ -49,7 +59,7 @@ from typing import Any
 import numpy as np
 
 from gns import mpm
-from gns.mpm import Block, Goop, MpmScene, Rigid, Sand, Segment, Water
+from gns.mpm import Block, Goop, MpmScene, Rigid, Sand, Segment, Shake, Water
 
 __all__ = [
     "PRESETS",
@@ -153,10 +163,13 @@ def _blocks(
     dim: int = 2,
     side: tuple[float, float] = SIDE,
     floor_gap: float = MARGIN,
+    walls: Sequence[tuple[float, float]] | None = None,
 ) -> list[Block]:
-    """Blocks of side U(side) of the given materials, velocity U(-speed, speed) per axis."""
+    """Blocks of side U(side) of the given materials, velocity U(-speed, speed) per axis,
+    inside `walls` (default the scene's)."""
     sizes = rng.uniform(side[0], side[1], (len(materials), dim))
-    boxes = place_blocks(rng, sizes, keep_out, gap, walls=WALLS_3D[:dim], floor_gap=floor_gap)
+    walls = WALLS_3D[:dim] if walls is None else walls
+    boxes = place_blocks(rng, sizes, keep_out, gap, walls=walls, floor_gap=floor_gap)
     velocities = rng.uniform(-speed, speed, (len(materials), dim))
     return [
         Block(m, lower=lower, size=size, velocity=tuple(float(c) for c in v))
@@ -271,6 +284,103 @@ def waterdrop_xl(rng: np.random.Generator) -> tuple[MpmScene, int]:
     paper's WATERDROP-XL's)."""
     scene, frames = waterdrop(rng)
     return dataclasses.replace(scene, grid=60), frames
+
+
+# FLUIDSHAKE: the container's displacement along x is amplitude sin(2 pi f t + phase), drawn per
+# trajectory. At 0.04 m and 4 Hz it accelerates at up to 25 m/s^2, 2.6 g.
+SHAKE_AMPLITUDE = (0.01, 0.04)
+SHAKE_FREQUENCY_HZ = (1.0, 4.0)
+# The 6 global features of the shake presets, as simulate gives them (Shake.context).
+SHAKE_CONTEXT = [
+    "container_x",
+    "container_y",
+    "container_vx",
+    "container_vy",
+    "container_ax",
+    "container_ay",
+]
+SHAKE_METADATA: dict[str, Any] = {
+    "context": SHAKE_CONTEXT,
+    "context_units": ["m", "m", "m/s", "m/s", "m/s^2", "m/s^2"],
+    "frame": "container",
+    "shake_amplitude_m": list(SHAKE_AMPLITUDE),
+    "shake_frequency_hz": list(SHAKE_FREQUENCY_HZ),
+}
+# FLUIDSHAKE-BOX's box: a 0.1 x 0.1 rigid body of half the water's density (Rigid's default).
+SHAKE_BOX = 0.1
+# The water of fluidshake-box starts below this height and the box above the water.
+SHAKE_BOX_WATER_TOP = 0.65
+# fluidshake-box's water blocks are larger than SIDE: the box floats tilted, corner down (a
+# square at half the water's density does), and needs about 0.07 m of water. With SIDE the pool
+# was 0.04-0.13 deep and the box lay on the floor in 5 of 8 draws; with these sides (0.87-2.0 k
+# water particles, the paper's FLUIDSHAKE-BOX has 1.5 k) it floated clear of the floor from
+# step 200 to 1500 in 12 of 12 draws.
+SHAKE_BOX_WATER_SIDE = (0.28, 0.36)
+
+
+def _shake(rng: np.random.Generator) -> Shake:
+    """The container's motion along x: amplitude, frequency and phase drawn uniformly."""
+    return Shake(
+        amplitude=float(rng.uniform(*SHAKE_AMPLITUDE)),
+        frequency_hz=float(rng.uniform(*SHAKE_FREQUENCY_HZ)),
+        phase=float(rng.uniform(0.0, 2.0 * math.pi)),
+        axis=0,
+    )
+
+
+def fluidshake(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """1-2 blocks of water in a container shaken along x, 2000 steps: FLUIDSHAKE. The blocks
+    start at rest in the container, so that the shaking is what moves the water; positions are
+    in the container's frame."""
+    blocks = _blocks(rng, [Water()] * _count(rng, 1, 2), 0.0)
+    return _scene(blocks, shake=_shake(rng)), 2001
+
+
+def fluidshake_box(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """fluidshake with a rigid 0.1 x 0.1 box (half water's density: it floats) dropped onto
+    the water: the water starts below SHAKE_BOX_WATER_TOP, the box GAP above the highest
+    block, anywhere across; 1500 steps: FLUIDSHAKE-BOX."""
+    lower_walls = (WALLS[0], (WALLS[1][0], SHAKE_BOX_WATER_TOP))
+    waters = [Water()] * _count(rng, 1, 2)
+    water = _blocks(rng, waters, 0.0, walls=lower_walls, side=SHAKE_BOX_WATER_SIDE)
+    top = max(b.lower[1] + b.size[1] for b in water)
+    x = rng.uniform(WALLS[0][0] + MARGIN, WALLS[0][1] - MARGIN - SHAKE_BOX)
+    y = rng.uniform(top + GAP, WALLS[1][1] - MARGIN - SHAKE_BOX)
+    box = Block(Rigid(), (float(x), float(y)), (SHAKE_BOX, SHAKE_BOX))
+    return _scene([*water, box], shake=_shake(rng)), 1501
+
+
+# RANDOMFLOOR's floor: its vertices are at most this high, which leaves 0.5 above it for 1-3
+# blocks of SIDE (GAP and the sticky nodes' 2 cells below them).
+FLOOR_HIGH = 0.3
+
+
+def random_floor(rng: np.random.Generator, spacing: float) -> list[Segment]:
+    """A rough floor: a polyline of 4-8 segments whose vertices are evenly spaced in x from the
+    left wall to the right one, at heights from the container's floor plus a clearance (as
+    random_ramps keeps ramps clear of the walls: MARGIN and the particles' rows below the
+    segment, 2 spacings) up to FLOOR_HIGH. It ends on the side walls: a gap of one grid node
+    between its end and a wall would let water through (a particle there takes the free
+    node's velocity with weight 3/4) and under the floor."""
+    count = _count(rng, 4, 8)
+    x = np.linspace(WALLS[0][0], WALLS[0][1], count + 1)
+    y = rng.uniform(WALLS[1][0] + MARGIN + 2 * spacing, FLOOR_HIGH, count + 1)
+    return [
+        Segment((float(x[k]), float(y[k])), (float(x[k + 1]), float(y[k + 1])))
+        for k in range(count)
+    ]
+
+
+def randomfloor(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """1-3 blocks of water thrown (as `water`) above a random rough floor (random_floor),
+    600 steps: RANDOMFLOOR."""
+    floor = random_floor(rng, _scene([]).spacing)
+    top = max(max(s.start[1], s.end[1]) for s in floor)
+    # Above the floor's highest vertex, clear of the grid nodes its particles make sticky.
+    above = (WALLS[0], (top, WALLS[1][1]))
+    gap = GAP + 2 / _scene([]).grid
+    blocks = _blocks(rng, [Water()] * _count(rng), SPEED, walls=above, floor_gap=gap)
+    return _scene(blocks, obstacles=floor), 601
 
 
 # CONTINUOUS (the paper's C.5): friction angles 0-80 degrees, with 30-55 held out of the train
@@ -405,6 +515,9 @@ PRESETS: dict[str, Preset] = {
     "waterramps": waterramps,
     "sandramps": sandramps,
     "waterdrop-xl": waterdrop_xl,
+    "fluidshake": fluidshake,
+    "fluidshake-box": fluidshake_box,
+    "randomfloor": randomfloor,
     "continuous": continuous,
     "sand-taichi": sand_taichi,
     "water-3d": water_3d,
@@ -414,7 +527,9 @@ PRESETS: dict[str, Preset] = {
 }
 # What a preset's metadata says about how it was drawn (gns generate writes it).
 PRESET_METADATA: dict[str, dict[str, Any]] = {
-    "continuous": {"held_out_friction_angle_deg": list(HELD_OUT_ANGLES), "held_out_of": "train"}
+    "continuous": {"held_out_friction_angle_deg": list(HELD_OUT_ANGLES), "held_out_of": "train"},
+    "fluidshake": SHAKE_METADATA,
+    "fluidshake-box": SHAKE_METADATA,
 }
 # Each preset's connectivity radius at scale 1 (CONNECTIVITY_RADIUS when not named).
 RADIUS = {
