@@ -12,7 +12,14 @@ import math
 import pytest
 import torch
 from gns.config import NoiseConfig
-from gns.noise import NOISE_FUNCTIONS, correlated, only_last, random_walk, sample_noise
+from gns.noise import (
+    NOISE_FUNCTIONS,
+    correlated,
+    only_last,
+    random_walk,
+    sample_noise,
+    wall_push,
+)
 
 N, C, D = 20_000, 5, 2
 SIGMA = 3e-4
@@ -119,3 +126,60 @@ def test_sample_noise_dispatches_on_the_config():
 def test_a_sequence_without_velocities_is_rejected():
     with pytest.raises(ValueError, match="C >= 1"):
         random_walk(torch.zeros(4, 1, 2))
+
+
+def test_wall_push_moves_only_particles_at_a_wall_into_it():
+    """|N(0, std R)| into the nearest wall for free particles within R of it; nothing
+    elsewhere, on kinematic particles or along an axis without walls."""
+    radius, std = 0.05, 0.5
+    g = torch.Generator().manual_seed(7)
+    x = torch.rand(N, 2, generator=g, dtype=torch.float64)
+    bounds = torch.tensor([[0.0, 1.0], [0.0, 1.0]], dtype=torch.float64)
+    kinematic = torch.arange(N) % 10 == 0
+    shift = wall_push(x, bounds, (1,), radius, std, kinematic=kinematic, generator=g)
+    low, high = x[:, 1] < radius, x[:, 1] > 1 - radius
+    free = ~kinematic
+    assert (shift[:, 0] == 0).all()  # axis 0 has no walls here
+    assert (shift[~(low | high) | kinematic] == 0).all()
+    assert (shift[low & free, 1] <= 0).all() and (shift[high & free, 1] >= 0).all()
+    depth = shift[(low | high) & free, 1].abs()
+    assert depth.numel() > 1000
+    # The mean of |N(0, s)| is s sqrt(2 / pi); its standard error s sqrt(1 - 2 / pi) / sqrt(n).
+    s = std * radius
+    error = abs(depth.mean().item() - s * math.sqrt(2 / math.pi))
+    assert error < 5 * s * math.sqrt(1 - 2 / math.pi) / math.sqrt(depth.numel())
+
+
+def test_the_target_of_a_pushed_particle_is_the_true_next_position(monkeypatch):
+    """Through the training step: the input moves into the floor by s, the target acceleration
+    pushes it back by s (the clean one minus s), whatever correct_position_fraction keeps."""
+    from gns.config import Config, ModelConfig
+    from gns.simulator import LearnedSimulator, Scene
+    from gns.train import TrainingStep
+
+    scene = Scene(dim=2, radius=0.05, particle_types=(5,), bounds=((0, 1), (0, 1)), walls=True)
+    model = ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=1)
+    noise = NoiseConfig(std=0.0, correct_position_fraction=0.1, wall_push=1.0)
+    simulator = LearnedSimulator(scene, Config(model=model, noise=noise)).double()
+    x = torch.tensor([[0.5, 0.02], [0.5, 0.5]], dtype=torch.float64)
+    seq = x[:, None].repeat(1, C + 1, 1)
+    seq[:, :, 0] += 1e-3 * torch.arange(C + 1)  # moving along x at 1e-3 a frame
+    truth = seq[:, -1] + torch.tensor([1e-3, -2e-4], dtype=torch.float64)
+    g = torch.Generator().manual_seed(0)
+    shift = simulator.sample_wall_push(seq, torch.tensor([5, 5]), g)
+    assert shift is not None and shift[0, 1] < 0 and (shift[1] == 0).all()
+    seen = {}
+
+    def spy(next_position, position_sequence, position_sequence_noise, *args, **kwargs):
+        keep = 1 - noise.correct_position_fraction
+        noisy = position_sequence + position_sequence_noise
+        seen["acceleration"] = (
+            next_position + keep * position_sequence_noise[:, -1] - 2 * noisy[:, -1] + noisy[:, -2]
+        )
+        return torch.zeros(2, 2), torch.zeros(2, 2)
+
+    monkeypatch.setattr(simulator, "predict_accelerations", spy)
+    zero = torch.zeros_like(seq)
+    TrainingStep(simulator)(seq, truth, zero, torch.tensor([5, 5]), wall_shift=shift)
+    clean = truth - 2 * seq[:, -1] + seq[:, -2]
+    torch.testing.assert_close(seen["acceleration"], clean - shift)

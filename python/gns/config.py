@@ -238,17 +238,24 @@ class NoiseConfig:
         so this is the same, as in C.2), per frame.
     correct_position_fraction: 0 trains the model to cancel the noise in the input velocity
         (the paper's default), 1 to cancel the noise in the input position.
+    wall_push: 0 (off), or the std, in radii, of a shift into the wall given to every free
+        particle within one radius of a wall, whose target stays the true next position
+        (gns.noise.wall_push). The data never puts a particle inside a wall, so without it a
+        model learns no force that pushes one back out.
     """
 
     type: NoiseType = "random_walk"
     std: float = 3e-4
     correct_position_fraction: float = 0.0
+    wall_push: float = 0.0
 
     def __post_init__(self) -> None:
         if self.type not in NOISE_TYPES:
             raise ValueError(f"NoiseConfig.type must be one of {NOISE_TYPES}, got {self.type!r}")
         if not (math.isfinite(self.std) and self.std >= 0):
             raise ValueError(f"NoiseConfig.std must be finite and >= 0, got {self.std}")
+        if not (math.isfinite(self.wall_push) and self.wall_push >= 0):
+            raise ValueError(f"NoiseConfig.wall_push must be finite and >= 0, got {self.wall_push}")
         if not 0.0 <= self.correct_position_fraction <= 1.0:
             raise ValueError(
                 "NoiseConfig.correct_position_fraction must be in [0, 1], got "
@@ -332,7 +339,8 @@ class TrainConfig:
     seed: data order, noise, mirroring and initial weights.
     mirror_axes: axes along which each training window is mirrored with probability 1/2 (about
         the box's centre; gns.augment), for scenes symmetric along them; none by default, as
-        in the paper.
+        in the paper. Positions and obstacle shapes are mirrored, the global context is not:
+        a scene whose context has a direction (fluidshake's container state) must not mirror.
     spike_factor: a step whose loss exceeds this many times the median loss of the previous
         100 steps (once there are 20) is reported as a loss spike, on stderr and in spikes.csv,
         with the batch's windows; training goes on. 0 turns the check off. (Non-finite losses

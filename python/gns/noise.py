@@ -30,6 +30,7 @@ __all__ = [
     "random_walk",
     "sample_noise",
     "uncorrelated",
+    "wall_push",
 ]
 
 
@@ -133,3 +134,30 @@ def sample_noise(
     """Position noise (N, C + 1, D) of the configured type and std."""
     function = NOISE_FUNCTIONS[config.type]
     return function(position_sequence, config.std, kinematic=kinematic, generator=generator)
+
+
+def wall_push(
+    last_position: Tensor,
+    bounds: Tensor,
+    axes: tuple[int, ...],
+    radius: float,
+    std: float,
+    *,
+    kinematic: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """A shift (N, D) into the walls (NoiseConfig.wall_push): each free particle closer than
+    `radius` to the lower or upper wall of one of `axes` (last_position (N, D), bounds (D, 2))
+    is moved into it by |N(0, std radius)|. The training target stays the true next position,
+    so the model learns to push a particle that is inside a wall back out, which no trajectory
+    of the data shows: it is where a learned rollout's sand sinks through a floor."""
+    shift = torch.zeros_like(last_position)
+    for axis in axes:
+        for side, sign in ((0, -1.0), (1, 1.0)):
+            gap = sign * (bounds[axis, side].to(last_position) - last_position[:, axis])
+            near = gap < radius
+            depth = _draw((last_position.shape[0],), last_position, std * radius, generator)
+            shift[:, axis] += torch.where(near, sign * depth.abs(), 0.0)
+    if kinematic is not None:
+        shift = shift * (~kinematic.to(torch.bool)).to(shift.dtype)[:, None]
+    return shift

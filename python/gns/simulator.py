@@ -31,7 +31,7 @@ from gns.cconv import CConv
 from gns.config import Config, SceneConfig
 from gns.data.stride import frame_stride
 from gns.model import EncodeProcessDecode
-from gns.noise import sample_noise
+from gns.noise import sample_noise, wall_push
 from gns.normalization import FixedNormalizer, Normalizer, RunningNormalizer
 
 __all__ = ["LearnedSimulator", "Scene"]
@@ -707,6 +707,27 @@ class LearnedSimulator(nn.Module):
         return sample_noise(
             self.config.noise,
             position_sequence,
+            kinematic=self.kinematic_mask(particle_type),
+            generator=generator,
+        )
+
+    def sample_wall_push(
+        self,
+        position_sequence: Tensor,
+        particle_type: Tensor,
+        generator: torch.Generator | None = None,
+    ) -> Tensor | None:
+        """The shift (N, D) into the walls of noise.wall_push (gns.noise.wall_push), or None
+        when it is off or the scene has no walls."""
+        std = self.config.noise.wall_push
+        if not std or not self.scene.wall_axes:
+            return None
+        return wall_push(
+            position_sequence[:, -1],
+            self.bounds,
+            self.scene.wall_axes,
+            self.scene.radius,
+            std,
             kinematic=self.kinematic_mask(particle_type),
             generator=generator,
         )

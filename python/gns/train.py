@@ -104,6 +104,9 @@ class TrainingStep(nn.Module):
     With pushforward = k > 0 (TrainConfig.pushforward), the noisy input is first pushed k
     steps forward by the model without gradient, and the loss is the one step from there to
     the ground truth k frames later (later_positions holds it).
+
+    wall_shift (N, D) (noise.wall_push) moves the noisy input into the walls; the first step's
+    target corrects it fully, whatever correct_position_fraction keeps of the noise.
     """
 
     def __init__(self, simulator: LearnedSimulator) -> None:
@@ -122,8 +125,11 @@ class TrainingStep(nn.Module):
         later_positions: Tensor | None = None,
         pushforward: int = 0,
         obstacles: GraphObstacles = None,
+        wall_shift: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         simulator = self.simulator
+        if wall_shift is not None:
+            position_sequence_noise = position_sequence_noise + wall_shift[:, None]
         if pushforward:
             assert later_positions is not None and later_positions.shape[1] >= pushforward
             position_sequence, next_position = self._push_forward(
@@ -139,6 +145,10 @@ class TrainingStep(nn.Module):
                 obstacles,
             )
             later_positions = None
+        if wall_shift is not None:
+            # The target keeps this much of the input noise's last position; not of the shift.
+            keep = 1.0 - simulator.config.noise.correct_position_fraction
+            next_position = next_position - keep * wall_shift
         predicted, target = simulator.predict_accelerations(
             next_position,
             position_sequence,
@@ -579,6 +589,7 @@ def train(
                 t["particle_type"],  # type: ignore[arg-type]
                 generator,
             )
+            shift = simulator.sample_wall_push(sequence, t["particle_type"], generator)  # type: ignore[arg-type]
             unroll = _pushforward_steps(tc, step)
             squared_sum, count = step_module(
                 sequence,
@@ -591,6 +602,7 @@ def train(
                 later_positions=targets[:, 1:] if tc.loss_steps > 1 or unroll else None,
                 pushforward=unroll,
                 obstacles=batch_obstacles(batch),
+                wall_shift=shift,
             )
             count = count.to(squared_sum.dtype)
             if world > 1:
