@@ -6,11 +6,19 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
 import pytest
 import torch
-from gns.checkpoints import latest_checkpoint, load_checkpoint, load_simulator
+from gns.checkpoints import (
+    choose_checkpoint,
+    latest_checkpoint,
+    load_checkpoint,
+    load_simulator,
+    model_location,
+)
 from gns.cli import main
-from gns.config import ModelConfig
+from gns.config import ModelConfig, TrainConfig
+from gns.data import write_dataset
 from gns.train import train
 from test_train import config, make_dataset, parameters, trained_run
 
@@ -112,3 +120,32 @@ def test_the_command_line_fine_tunes_with_the_models_own_config(tmp_path):
     tuned = load_checkpoint(latest_checkpoint(tmp_path / "b"))
     assert tuned["config"]["model"] == load_checkpoint(latest_checkpoint(run))["config"]["model"]
     assert tuned["init_from"] == str(run)
+
+
+def test_the_shipped_model_fine_tunes_on_data_of_its_scene(tmp_path):
+    """A model saved before obstacle features existed (checkpoint format 2, the shipped one)
+    fine-tunes on data of its own scene: its wall clip of 6 radii and no obstacles."""
+    shipped = load_simulator("sand2d-taichi")
+    assert load_checkpoint(choose_checkpoint(model_location("sand2d-taichi")))["format"] == (
+        "gns-checkpoint-2"
+    )
+    scene = shipped.scene
+    rng = np.random.default_rng(0)
+    x = 0.4 + 0.2 * rng.random((1, 40, 2)) + np.zeros((12, 1, 1))
+    trajectory = {
+        "positions": x.astype(np.float32),
+        "particle_type": np.full(40, 6),
+        "material_property": np.float32(0.6),
+    }
+    write_dataset(
+        tmp_path / "d",
+        {"train": [trajectory]},
+        dt=scene.dt,
+        bounds=scene.bounds,
+        connectivity_radius=scene.radius,
+    )
+    short = TrainConfig(steps=2, validate_every=0, checkpoint_every=2)
+    config = dataclasses.replace(shipped.config, train=short)
+    train(tmp_path / "d", tmp_path / "b", config, progress=False, init_from="sand2d-taichi")
+    tuned = load_simulator(tmp_path / "b")
+    assert tuned.scene == scene

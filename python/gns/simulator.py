@@ -171,7 +171,9 @@ class Scene:
             wall_clip=wall_clip,
             dt=metadata.dt,
             obstacles=obstacles,
-            obstacle_clip=config.obstacle_clip or wall_clip,
+            # Without obstacles the clip means nothing: the default, so that the scene equals
+            # that of a model saved before obstacle features existed (fine-tuning compares them).
+            obstacle_clip=(config.obstacle_clip or wall_clip) if obstacles else 1.0,
         )
 
     @classmethod
