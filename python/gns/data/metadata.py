@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from gns.data.errors import DatasetError
+from gns.data.trajectory import polyline_problem
 from gns.files import write_json_atomic
 from gns.periodic import period_of
 
@@ -271,13 +272,9 @@ class Metadata:
                     vertices = np.asarray(shape["polyline"], dtype=np.float64)
                 except (TypeError, ValueError) as err:
                     raise fail(f"{split!r} trajectory {key} shape {k}: {err}") from err
-                if vertices.ndim != 2 or vertices.shape[0] < 2 or vertices.shape[1] != self.dim:
-                    raise fail(
-                        f"{split!r} trajectory {key} shape {k} has vertices of shape "
-                        f"{vertices.shape}; expected (K >= 2, {self.dim})"
-                    )
-                if not np.isfinite(vertices).all():
-                    raise fail(f"{split!r} trajectory {key} shape {k} has non-finite vertices")
+                problem = polyline_problem(vertices, self.dim)
+                if problem is not None:
+                    raise fail(f"{split!r} trajectory {key} shape {k} {problem}")
                 polylines.append(vertices)
             out[index] = tuple(polylines)
         return out

@@ -87,8 +87,9 @@ class Trajectory:
         if self.obstacles is not None:
             polylines = tuple(np.asarray(v, dtype=np.float64) for v in self.obstacles)
             for k, v in enumerate(polylines):
-                if v.ndim != 2 or v.shape[0] < 2 or v.shape[1] != d or not np.isfinite(v).all():
-                    raise fail(f"obstacle {k} must be finite (K >= 2, {d}) vertices, got {v.shape}")
+                problem = polyline_problem(v, d)
+                if problem is not None:
+                    raise fail(f"obstacle {k} {problem}")
             object.__setattr__(self, "obstacles", polylines)
 
         object.__setattr__(self, "positions", positions)
@@ -118,3 +119,13 @@ class Trajectory:
             if extra is not None:
                 total += extra.nbytes
         return total
+
+
+def polyline_problem(vertices: np.ndarray, dim: int) -> str | None:
+    """What is wrong with an obstacle polyline's vertices (K >= 2 finite points of `dim`
+    coordinates), or None: the one check of Trajectory.obstacles and metadata.json's."""
+    if vertices.ndim != 2 or vertices.shape[0] < 2 or vertices.shape[1] != dim:
+        return f"has vertices of shape {vertices.shape}; expected (K >= 2, {dim})"
+    if not np.isfinite(vertices).all():
+        return "has non-finite vertices"
+    return None
