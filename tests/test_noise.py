@@ -150,6 +150,42 @@ def test_wall_push_moves_only_particles_at_a_wall_into_it():
     assert error < 5 * s * math.sqrt(1 - 2 / math.pi) / math.sqrt(depth.numel())
 
 
+def test_wall_push_through_only_moves_only_particles_it_takes_past_the_wall():
+    """With through_only, a particle at gap g from a wall is shifted with probability
+    P(|N(0, s)| > g) = 2 (1 - Phi(g / s)), always past the wall; the rest keep their place."""
+    radius, std = 0.05, 0.5
+    s = std * radius
+    g = torch.Generator().manual_seed(11)
+    gap = torch.tensor([0.25 * s, s, 2 * s, 2 * radius], dtype=torch.float64).repeat(N // 4)
+    x = torch.stack([torch.full_like(gap, 0.5), gap], dim=1)  # above the floor at y = 0
+    bounds = torch.tensor([[0.0, 1.0], [0.0, 1.0]], dtype=torch.float64)
+    shift = wall_push(x, bounds, (1,), radius, std, through_only=True, generator=g)
+    moved = shift[:, 1] != 0
+    assert (shift[:, 0] == 0).all()
+    assert (x[moved, 1] + shift[moved, 1] < 0).all()  # every shifted particle ends in the floor
+    n = N // 4
+    for k, ratio in enumerate((0.25, 1.0, 2.0, 2 * radius / s)):
+        expected = math.erfc(ratio / math.sqrt(2))  # 2 (1 - Phi(ratio))
+        fraction = moved[k::4].double().mean().item()
+        assert abs(fraction - expected) <= 5 * math.sqrt(expected * (1 - expected) / n) + 1e-12
+
+
+def test_the_simulator_passes_through_only_on():
+    """noise.wall_push_through_only reaches the shift: a particle half a radius above the
+    floor is shifted by wall_push 0.1 alone, not with through_only (5 sigma away)."""
+    from gns.config import Config, ModelConfig
+    from gns.simulator import LearnedSimulator, Scene
+
+    scene = Scene(dim=2, radius=0.05, particle_types=(5,), bounds=((0, 1), (0, 1)), walls=True)
+    model = ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=1)
+    seq = torch.tensor([[0.5, 0.025]], dtype=torch.float64)[:, None].repeat(1, C + 1, 1)
+    for through_only, moved in ((False, True), (True, False)):
+        noise = NoiseConfig(std=0.0, wall_push=0.1, wall_push_through_only=through_only)
+        simulator = LearnedSimulator(scene, Config(model=model, noise=noise)).double()
+        shift = simulator.sample_wall_push(seq, torch.tensor([5]), torch.Generator().manual_seed(0))
+        assert shift is not None and bool(shift[0, 1] != 0) is moved
+
+
 def test_the_target_of_a_pushed_particle_is_the_true_next_position(monkeypatch):
     """Through the training step: the input moves into the floor by s, the target acceleration
     pushes it back by s (the clean one minus s), whatever correct_position_fraction keeps."""

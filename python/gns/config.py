@@ -242,12 +242,16 @@ class NoiseConfig:
         particle within one radius of a wall, whose target stays the true next position
         (gns.noise.wall_push). The data never puts a particle inside a wall, so without it a
         model learns no force that pushes one back out.
+    wall_push_through_only: shift only the particles whose shift takes them past the wall;
+        the others keep their inputs and targets (otherwise every particle within one radius
+        is shifted, and the layer at a wall learns a push the data does not have).
     """
 
     type: NoiseType = "random_walk"
     std: float = 3e-4
     correct_position_fraction: float = 0.0
     wall_push: float = 0.0
+    wall_push_through_only: bool = False
 
     def __post_init__(self) -> None:
         if self.type not in NOISE_TYPES:

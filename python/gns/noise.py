@@ -143,6 +143,7 @@ def wall_push(
     radius: float,
     std: float,
     *,
+    through_only: bool = False,
     kinematic: Tensor | None = None,
     generator: torch.Generator | None = None,
 ) -> Tensor:
@@ -150,14 +151,18 @@ def wall_push(
     `radius` to the lower or upper wall of one of `axes` (last_position (N, D), bounds (D, 2))
     is moved into it by |N(0, std radius)|. The training target stays the true next position,
     so the model learns to push a particle that is inside a wall back out, which no trajectory
-    of the data shows: it is where a learned rollout's sand sinks through a floor."""
+    of the data shows: it is where a learned rollout's sand sinks through a floor.
+
+    through_only keeps only the shifts that take a particle past the wall: a particle left
+    inside the box keeps its own target, so the model is not taught a push on the layer at a
+    wall that the data does not have (NoiseConfig.wall_push_through_only)."""
     shift = torch.zeros_like(last_position)
     for axis in axes:
         for side, sign in ((0, -1.0), (1, 1.0)):
             gap = sign * (bounds[axis, side].to(last_position) - last_position[:, axis])
-            near = gap < radius
-            depth = _draw((last_position.shape[0],), last_position, std * radius, generator)
-            shift[:, axis] += torch.where(near, sign * depth.abs(), 0.0)
+            depth = _draw((last_position.shape[0],), last_position, std * radius, generator).abs()
+            near = depth > gap if through_only else gap < radius
+            shift[:, axis] += torch.where(near, sign * depth, 0.0)
     if kinematic is not None:
         shift = shift * (~kinematic.to(torch.bool)).to(shift.dtype)[:, None]
     return shift

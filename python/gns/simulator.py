@@ -730,6 +730,7 @@ class LearnedSimulator(nn.Module):
             self.scene.wall_axes,
             self.scene.radius,
             std,
+            through_only=self.config.noise.wall_push_through_only,
             kinematic=self.kinematic_mask(particle_type),
             generator=generator,
         )
