@@ -107,6 +107,10 @@ def test_a_model_folder_rolls_out_and_writes_beside_the_working_directory(
     kept = ["--rollouts", str(tmp_path / "kept" / "test"), "--one-step-windows", "0"]
     assert main(["eval", *argv, *kept]) == 0
     assert (work / "mine" / "eval_test.json").is_file()
+    # So does a report, rather than into the model folder (a shipped one may be read-only).
+    assert main(["report", *argv, "--animation-frames", "0", "--vtk-every", "0", "--quiet"]) == 0
+    assert (work / "mine" / "report_test" / "report.md").is_file()
+    assert sorted(os.listdir(tmp_path / "mine")) == [MODEL_FILE]
 
 
 def test_written_files_get_the_usual_permissions(run, tmp_path):

@@ -334,7 +334,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="auto|best|latest|PATH",
         help="one row per checkpoint (default auto: best when the run was validated)",
     )
-    rep.add_argument("--out", type=Path, help="default: RUN/report_SPLIT")
+    rep.add_argument(
+        "--out", type=Path, help="default: RUN/report_SPLIT (a model folder: ./NAME/report_SPLIT)"
+    )
     rep.add_argument(
         "--trajectories", type=positive_int, metavar="N", help="the first N (default all)"
     )

@@ -211,12 +211,13 @@ def report(
     frame stride (0: no VTK files; default: at most about 100 frames, as ASCII VTK takes ~30
     bytes per particle and frame). rest_steps: hold each trajectory's last frame still and roll
     every checkpoint out this many steps from it (gns.evaluate.rest_test; 0: no rest test).
-    command, notes: shown in the report. out: default
-    RUN/report_SPLIT; it must be missing, empty or an earlier report, which the new one replaces
-    when it is complete (a failed report leaves `out` as it was).
+    command, notes: shown in the report. out: default RUN/report_SPLIT (for a model folder,
+    ./NAME/report_SPLIT: gns.checkpoints.run_folder); it must be missing, empty or an earlier
+    report, which the new one replaces when it is complete (a failed report leaves `out` as it
+    was).
     """
 
-    from gns.checkpoints import load_checkpoint, simulator_from_checkpoint
+    from gns.checkpoints import load_checkpoint, run_folder, simulator_from_checkpoint
     from gns.data import at_frame_stride, open_dataset
     from gns.device import resolve_device
     from gns.rollout import frame_stride_metadata
@@ -238,9 +239,7 @@ def report(
     horizons = parse_horizons(list(horizons))
     if not checkpoints:
         raise ValueError("at least one checkpoint is needed")
-    out = (
-        Path(out) if out is not None else (run if run.is_dir() else run.parent) / f"report_{split}"
-    )
+    out = Path(out) if out is not None else run_folder(run) / f"report_{split}"
     _check_output(out)
     torch_device = resolve_device(device)
     dataset = open_dataset(data, split)
