@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 from gns.checkpoints import (
+    MODEL_FILE,
     choose_checkpoint,
     latest_checkpoint,
     load_checkpoint,
@@ -122,13 +123,21 @@ def test_the_command_line_fine_tunes_with_the_models_own_config(tmp_path):
     assert tuned["init_from"] == str(run)
 
 
-def test_the_shipped_model_fine_tunes_on_data_of_its_scene(tmp_path):
-    """A model saved before obstacle features existed (checkpoint format 2, the shipped one)
-    fine-tunes on data of its own scene: its wall clip of 6 radii and no obstacles."""
+@pytest.mark.parametrize("old_format", [False, True])
+def test_the_shipped_model_fine_tunes_on_data_of_its_scene(tmp_path, old_format):
+    """The shipped model fine-tunes on data of its own scene (a wall clip of 6 radii and no
+    obstacles), and so does the same model saved as checkpoint format 2, before the scene had
+    obstacle features (the shipped model's format until 2026-11-26)."""
     shipped = load_simulator("sand2d-taichi")
-    assert load_checkpoint(choose_checkpoint(model_location("sand2d-taichi")))["format"] == (
-        "gns-checkpoint-2"
-    )
+    init_from = "sand2d-taichi"
+    if old_format:
+        state = load_checkpoint(choose_checkpoint(model_location("sand2d-taichi")))
+        for key in ("obstacles", "obstacle_clip"):
+            del state["scene"][key]
+        state["format"] = "gns-checkpoint-2"
+        (tmp_path / "old").mkdir()
+        torch.save(state, tmp_path / "old" / MODEL_FILE)
+        init_from = tmp_path / "old"
     scene = shipped.scene
     rng = np.random.default_rng(0)
     x = 0.4 + 0.2 * rng.random((1, 40, 2)) + np.zeros((12, 1, 1))
@@ -146,6 +155,6 @@ def test_the_shipped_model_fine_tunes_on_data_of_its_scene(tmp_path):
     )
     short = TrainConfig(steps=2, validate_every=0, checkpoint_every=2)
     config = dataclasses.replace(shipped.config, train=short)
-    train(tmp_path / "d", tmp_path / "b", config, progress=False, init_from="sand2d-taichi")
+    train(tmp_path / "d", tmp_path / "b", config, progress=False, init_from=init_from)
     tuned = load_simulator(tmp_path / "b")
     assert tuned.scene == scene
