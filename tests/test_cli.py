@@ -379,6 +379,24 @@ def test_rollouts_record_absolute_paths_and_eval_reads_them_anywhere(
     capsys.readouterr()
 
 
+def test_eval_refuses_rollouts_of_another_model_than_run_names(trained, tmp_path, capsys):
+    """--run names the model whose one-step errors and rest test eval gives: rollouts made
+    by another one (here the run, while --run names a model exported from it) are refused."""
+    run, data = trained
+    made = tmp_path / "made"
+    assert main(["rollout", "--run", str(run), "--data", str(data), "--out", str(made),
+                 "--trajectories", "0", "--steps", "2"]) == 0  # fmt: skip
+    assert main(["export", "--run", str(run), "--out", str(tmp_path / "other")]) == 0
+    argv = ["eval", "--data", str(data), "--rollouts", str(made), "--one-step-windows", "4"]
+    recorded = checkpoints.choose_checkpoint(run).resolve()
+    capsys.readouterr()
+    assert main([*argv, "--run", str(tmp_path / "other")]) == 2
+    err = capsys.readouterr().err
+    assert f"were made with {recorded}, which is not --run {tmp_path / 'other'}'s" in err
+    assert not (tmp_path / "other" / "eval_test.json").exists()
+    assert main([*argv, "--run", str(run)]) == 0  # the rollouts' own run
+
+
 def recorded_as(source: Path, folder: Path, checkpoint: str) -> Path:
     """A copy of the rollout `source` in `folder` recording `checkpoint`, as older versions
     recorded it (relative to where they ran)."""

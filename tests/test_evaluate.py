@@ -5,6 +5,7 @@ data whose frames are finer than the model's step too."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -270,8 +271,9 @@ def test_train_rollout_eval_commands_end_to_end(tmp_path, capsys):
         + [1.0],
         rel=1e-3,
     )
-    # --run may name a checkpoint file: the report goes beside it.
-    checkpoint = sorted((run / "checkpoints").glob("step_*.pt"))[0]
+    # --run may name a checkpoint file (here the one the rollouts were made with): the report
+    # goes beside it.
+    checkpoint = Path(load_rollout(out64 / "rollout_test_0.npz").metadata["checkpoint"])
     args = ["eval", "--run", str(checkpoint), "--data", str(data), "--rollouts", str(out64)]
     assert main([*args, "--checkpoint", "best"]) == 2  # best.pt is for run folders
     assert main([*args, "--every", "4", "--rest-steps", "3", "--one-step-windows", "0"]) == 0

@@ -37,6 +37,7 @@ __all__ = [
     "SHIPPED_MODELS",
     "choose_checkpoint",
     "export_model",
+    "is_of_run",
     "latest_checkpoint",
     "load_checkpoint",
     "load_simulator",
@@ -206,6 +207,15 @@ def shipped_models() -> list[str]:
 def is_model_folder(path: Path) -> bool:
     """A folder with one exported model (model.pt), not a run folder (checkpoints/)."""
     return (path / MODEL_FILE).is_file() and not (path / "checkpoints").is_dir()
+
+
+def is_of_run(checkpoint: Path, run: Path) -> bool:
+    """Whether `checkpoint` is the one `run` names (a checkpoint file, or a model folder's
+    model) or, for a run folder, one of its checkpoints."""
+    if run.is_file() or is_model_folder(run):
+        named = run if run.is_file() else run / MODEL_FILE
+        return checkpoint.resolve() == named.resolve()
+    return run.resolve() in checkpoint.resolve().parents
 
 
 def model_location(text: str | os.PathLike[str]) -> Path:

@@ -594,6 +594,7 @@ def run_rollout(args: argparse.Namespace) -> int:
 def run_eval(args: argparse.Namespace) -> int:
     from gns.checkpoints import (
         choose_checkpoint,
+        is_of_run,
         load_simulator,
         recorded_checkpoint,
         run_folder,
@@ -626,6 +627,13 @@ def run_eval(args: argparse.Namespace) -> int:
         made_with = {r.metadata.get("checkpoint") for r in rollouts}
         if args.checkpoint == "auto" and len(made_with) == 1 and None not in made_with:
             checkpoint = recorded_checkpoint(str(made_with.pop()), args.run)
+            if not is_of_run(checkpoint, args.run):
+                raise ValueError(
+                    f"the rollouts in {folder} were made with {checkpoint}, which is not "
+                    f"--run {args.run}'s: their one-step errors and rest test would be another "
+                    f"model's; roll {args.run} out first (gns rollout) or pass the rollouts' own "
+                    "--run"
+                )
         else:
             checkpoint = choose_checkpoint(args.run, args.checkpoint)
         simulator = load_simulator(checkpoint, device)
