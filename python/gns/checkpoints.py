@@ -213,8 +213,7 @@ def is_of_run(checkpoint: Path, run: Path) -> bool:
     """Whether `checkpoint` is the one `run` names (a checkpoint file, or a model folder's
     model) or, for a run folder, one of its checkpoints."""
     if run.is_file() or is_model_folder(run):
-        named = run if run.is_file() else run / MODEL_FILE
-        return checkpoint.resolve() == named.resolve()
+        return checkpoint.resolve() == choose_checkpoint(run).resolve()
     return run.resolve() in checkpoint.resolve().parents
 
 
