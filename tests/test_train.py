@@ -247,7 +247,7 @@ def test_max_grad_norm_bounds_every_update_and_the_log_shows_the_norm_before_cli
             TrainConfig(max_grad_norm=bad)
 
 
-def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets(tmp_path):
+def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets_and_huber(tmp_path):
     data = make_dataset(tmp_path / "data")
     simulator = train(data, tmp_path / "run", config(2), progress=False)
     simulator.eval()
@@ -284,6 +284,23 @@ def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets(tmp_
             t["position_sequence"], moved, noise, t["particle_type"], t["n_node"], t["context"],
         )  # fmt: skip
     assert float(again) == float(squared_sum)
+    # train.huber_delta: twice torch's Huber loss per dimension, with delta at the median error
+    # so that half the errors are beyond it and count linearly.
+    residual = (predicted - target)[torch.from_numpy(free)]
+    delta = float(residual.abs().median())
+    huber = TrainingStep(simulator, huber_delta=delta)
+    with torch.no_grad():
+        robust, _ = huber(
+            t["position_sequence"], t["next_position"], noise, t["particle_type"], t["n_node"],
+            t["context"], t["material_property"],
+        )  # fmt: skip
+    oracle = 2 * torch.nn.functional.huber_loss(
+        residual, torch.zeros_like(residual), reduction="sum", delta=delta
+    )
+    assert float(robust) == pytest.approx(float(oracle), rel=1e-5)
+    assert float(robust) < float(squared_sum)
+    with pytest.raises(ValueError, match="huber_delta must be positive, got -1.0"):
+        TrainConfig(huber_delta=-1.0)
 
 
 def test_training_reduces_the_loss_and_validates(tmp_path):

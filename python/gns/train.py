@@ -92,6 +92,8 @@ class TrainingStep(nn.Module):
 
     forward returns (sum over non-kinematic particles of the squared acceleration error summed
     over dimensions, the number of those particles); the trainer divides by the global count.
+    With huber_delta (TrainConfig.huber_delta), each dimension's error beyond it counts
+    linearly (the Huber loss, scaled to equal the squared error below delta).
 
     With later_positions (N, K - 1, D), the ground truth of K - 1 further frames, the loss adds
     K steps (TrainConfig.loss_steps, the multi-step loss of Ummenhofer et al. 2020): each
@@ -109,9 +111,19 @@ class TrainingStep(nn.Module):
     target corrects it fully, whatever correct_position_fraction keeps of the noise.
     """
 
-    def __init__(self, simulator: LearnedSimulator) -> None:
+    def __init__(self, simulator: LearnedSimulator, huber_delta: float | None = None) -> None:
         super().__init__()
         self.simulator = simulator
+        self.huber_delta = huber_delta
+
+    def _error(self, predicted: Tensor, target: Tensor) -> Tensor:
+        """The loss of each particle (N,): its acceleration error summed over dimensions."""
+        residual = predicted.float() - target.float()
+        if self.huber_delta is None:
+            return residual.square().sum(dim=-1)
+        delta, size = self.huber_delta, residual.abs()
+        huber = torch.where(size <= delta, residual.square(), 2.0 * delta * size - delta**2)
+        return huber.sum(dim=-1)
 
     def forward(
         self,
@@ -160,7 +172,7 @@ class TrainingStep(nn.Module):
             obstacles=obstacles,
         )
         free = ~simulator.kinematic_mask(particle_type)
-        squared = (predicted.float() - target.float()).square().sum(dim=-1)
+        squared = self._error(predicted, target)
         if later_positions is not None:
             kinematic = ~free[:, None]
             sequence = position_sequence + position_sequence_noise
@@ -174,7 +186,7 @@ class TrainingStep(nn.Module):
                 target = simulator.target_normalized_acceleration(
                     truth, sequence, position_sequence_noise
                 )
-                squared = squared + (predicted.float() - target.float()).square().sum(dim=-1)
+                squared = squared + self._error(predicted, target)
         return squared[free].sum(), free.sum()
 
     @torch.no_grad()
@@ -457,7 +469,7 @@ def train(
         tc.mirror_axes, simulator.scene.dim, dataset.metadata.acc_mean, dataset.metadata.acc_std
     )
 
-    step_module: nn.Module = TrainingStep(simulator)
+    step_module: nn.Module = TrainingStep(simulator, tc.huber_delta)
     if world > 1:
         for module in simulator.modules():
             if isinstance(module, RunningNormalizer):

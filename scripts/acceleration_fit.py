@@ -1,0 +1,82 @@
+"""How much of the true acceleration a model predicts, one step ahead from true frames, by size.
+
+    python scripts/acceleration_fit.py MODEL DATA SPLIT [--trajectories 8] [--every 2]
+
+MODEL: a model name, folder or checkpoint (as `gns rollout --run`); DATA: a dataset folder.
+Every `every`-th window of `trajectories` trajectories (spread evenly over the split) is
+predicted from the ground truth's frames (no noise, no rollout), at the model's frame stride.
+The particle-steps are binned by the size of their true acceleration, in units of the model's
+own acceleration std (its normaliser's), and each bin prints its share of the particle-steps,
+the slope of predicted on true acceleration (1: all of it; 0.5: half), the rms error and its
+share of the squared error; and how much of the target's squared size the largest 1% of
+the true accelerations hold. A rollout can only be as good as these steps: where the slope is
+well below 1 the model damps that motion (for sand: gravity and the spreading after landing).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import gns
+import numpy as np
+import torch
+
+BINS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, np.inf)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model")
+    parser.add_argument("data")
+    parser.add_argument("split")
+    parser.add_argument("--trajectories", type=int, default=8)
+    parser.add_argument("--every", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    simulator = gns.load_simulator(args.model).eval()
+    dataset = gns.data.open_dataset(args.data, args.split)
+    stride = simulator.frame_stride_for(dataset.metadata)
+    history = simulator.config.model.velocity_history + 1
+    chosen = np.unique(np.linspace(0, len(dataset) - 1, min(args.trajectories, len(dataset))))
+    true, predicted = [], []
+    for index in chosen.astype(int):
+        trajectory = gns.data.at_frame_stride(dataset[index], stride)
+        positions = trajectory.positions
+        types = torch.as_tensor(trajectory.particle_type)
+        for start in range(0, len(positions) - history, args.every):
+            frames = positions[start : start + history]
+            context = None
+            if trajectory.step_context is not None:
+                context = torch.as_tensor(trajectory.step_context[start + history - 1])[None]
+            with torch.no_grad():
+                following = simulator.predict_positions(
+                    torch.as_tensor(np.swapaxes(frames, 0, 1)), types, context=context
+                ).numpy()
+            true.append(positions[start + history] - 2 * frames[-1] + frames[-2])
+            predicted.append(following - 2 * frames[-1] + frames[-2])
+    std = simulator.acceleration_normalizer.std.detach().double().numpy()
+    a, p = np.concatenate(true) / std, np.concatenate(predicted) / std
+    size = np.linalg.norm(a, axis=1)
+    error = ((p - a) ** 2).sum(axis=1)
+    top = np.sort(size**2)[-max(1, len(size) // 100) :].sum() / (size**2).sum()
+    print(
+        f"{args.model} on {args.split}: {len(size)} particle-steps from {len(chosen)} "
+        f"trajectories; squared error {error.mean():.3f} against the target's "
+        f"{(size**2).mean():.3f} (units: the model's acceleration std {std}); the largest 1% "
+        f"of the true accelerations hold {top:.0%} of their squares"
+    )
+    print("| true acceleration (std) | share | slope | rms error | share of squared error |")
+    print("|---|---|---|---|---|")
+    for low, high in zip(BINS[:-1], BINS[1:], strict=True):
+        keep = (size >= low) & (size < high)
+        if not keep.any():
+            continue
+        slope = (a[keep] * p[keep]).sum() / (a[keep] ** 2).sum()
+        print(
+            f"| {low:g}-{high:g} | {keep.mean():.3f} | {slope:.2f} | "
+            f"{np.sqrt(error[keep].mean()):.3f} | {error[keep].sum() / error.sum():.2f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
