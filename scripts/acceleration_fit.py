@@ -5,11 +5,12 @@
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`); DATA: a dataset folder.
 Every `every`-th window of `trajectories` trajectories (spread evenly over the split) is
 predicted from the ground truth's frames (no noise, no rollout), at the model's frame stride.
-The particle-steps are binned by the size of their true acceleration, in units of the model's
-own acceleration std (its normaliser's), and each bin prints its share of the particle-steps,
-the slope of predicted on true acceleration (1: all of it; 0.5: half), the rms error and its
-share of the squared error; and how much of the target's squared size the largest 1% of
-the true accelerations hold. A rollout can only be as good as these steps: where the slope is
+The particle-steps are binned by the size of their true acceleration, in units of its std over
+them (per axis: the same units for every model on the same data). Each bin prints its share
+of the particle-steps, the slope of predicted on true acceleration (1: all of it; 0.5: half),
+the rms error and its share of the squared error. The first line gives R^2 over all of them
+and how much of the target's squared size the largest 1% of the true accelerations hold.
+A rollout can only be as good as these steps: where the slope is
 well below 1 the model damps that motion (for sand: gravity and the spreading after landing).
 """
 
@@ -54,16 +55,18 @@ def main() -> None:
                 ).numpy()
             true.append(positions[start + history] - 2 * frames[-1] + frames[-2])
             predicted.append(following - 2 * frames[-1] + frames[-2])
-    std = simulator.acceleration_normalizer.std.detach().double().numpy()
-    a, p = np.concatenate(true) / std, np.concatenate(predicted) / std
+    true_all = np.concatenate(true).astype(np.float64)
+    std = true_all.std(axis=0)
+    a, p = true_all / std, np.concatenate(predicted) / std
     size = np.linalg.norm(a, axis=1)
     error = ((p - a) ** 2).sum(axis=1)
+    explained = 1.0 - error.sum() / ((a - a.mean(axis=0)) ** 2).sum()
     top = np.sort(size**2)[-max(1, len(size) // 100) :].sum() / (size**2).sum()
     print(
         f"{args.model} on {args.split}: {len(size)} particle-steps from {len(chosen)} "
-        f"trajectories; squared error {error.mean():.3f} against the target's "
-        f"{(size**2).mean():.3f} (units: the model's acceleration std {std}); the largest 1% "
-        f"of the true accelerations hold {top:.0%} of their squares"
+        f"trajectories, true acceleration std {std} a step; R^2 {explained:.2f} (squared error "
+        f"{error.mean():.3f} in units of the std); the largest 1% of the true accelerations "
+        f"hold {top:.0%} of their squares"
     )
     print("| true acceleration (std) | share | slope | rms error | share of squared error |")
     print("|---|---|---|---|---|")

@@ -247,7 +247,7 @@ def test_max_grad_norm_bounds_every_update_and_the_log_shows_the_norm_before_cli
             TrainConfig(max_grad_norm=bad)
 
 
-def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets_and_huber(tmp_path):
+def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets_and_weights(tmp_path):
     data = make_dataset(tmp_path / "data")
     simulator = train(data, tmp_path / "run", config(2), progress=False)
     simulator.eval()
@@ -301,6 +301,18 @@ def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets_and_
     assert float(robust) < float(squared_sum)
     with pytest.raises(ValueError, match="huber_delta must be positive, got -1.0"):
         TrainConfig(huber_delta=-1.0)
+    # train.target_weight: each particle's squared error times 1 + w |its target|.
+    weighted = TrainingStep(simulator, target_weight=2.5)
+    with torch.no_grad():
+        heavier, _ = weighted(
+            t["position_sequence"], t["next_position"], noise, t["particle_type"], t["n_node"],
+            t["context"], t["material_property"],
+        )  # fmt: skip
+    keep = torch.from_numpy(free)
+    by_hand = (predicted - target).square().sum(-1) * (1 + 2.5 * target.norm(dim=-1))
+    assert float(heavier) == pytest.approx(float(by_hand[keep].sum()), rel=1e-5)
+    with pytest.raises(ValueError, match="target_weight must be >= 0, got nan"):
+        TrainConfig(target_weight=float("nan"))
 
 
 def test_training_reduces_the_loss_and_validates(tmp_path):

@@ -377,6 +377,9 @@ class TrainConfig:
         model's squared error on its training data) and so drive the gradient. Measured on
         that model (docs/sand-ablation.md): it fitted the common accelerations a little
         better and rolled out worse.
+    target_weight: each particle's loss is multiplied by 1 + target_weight |a|, |a| the 2-norm
+        of its normalised target acceleration: the landings count more than their square
+        alone. 0 (the paper's): every particle alike.
     """
 
     steps: int = 20_000_000
@@ -400,6 +403,7 @@ class TrainConfig:
     pushforward: tuple[float, ...] = ()
     max_grad_norm: float | None = None
     huber_delta: float | None = None
+    target_weight: float = 0.0
 
     @property
     def extra_frames(self) -> int:
@@ -460,6 +464,8 @@ class TrainConfig:
             _positive(self, "max_grad_norm")
         if self.huber_delta is not None:
             _positive(self, "huber_delta")
+        if not self.target_weight >= 0:  # NaN fails too
+            raise ValueError(f"TrainConfig.target_weight must be >= 0, got {self.target_weight!r}")
 
     def learning_rate_at(self, step: int) -> float:
         """The learning rate of gradient step `step` (0-based)."""

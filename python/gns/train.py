@@ -93,7 +93,9 @@ class TrainingStep(nn.Module):
     forward returns (sum over non-kinematic particles of the squared acceleration error summed
     over dimensions, the number of those particles); the trainer divides by the global count.
     With huber_delta (TrainConfig.huber_delta), each dimension's error beyond it counts
-    linearly (the Huber loss, scaled to equal the squared error below delta).
+    linearly (the Huber loss, scaled to equal the squared error below delta); with
+    target_weight w (TrainConfig.target_weight), a particle's loss is multiplied by 1 + w |a|,
+    |a| the 2-norm of its normalised target acceleration.
 
     With later_positions (N, K - 1, D), the ground truth of K - 1 further frames, the loss adds
     K steps (TrainConfig.loss_steps, the multi-step loss of Ummenhofer et al. 2020): each
@@ -111,19 +113,29 @@ class TrainingStep(nn.Module):
     target corrects it fully, whatever correct_position_fraction keeps of the noise.
     """
 
-    def __init__(self, simulator: LearnedSimulator, huber_delta: float | None = None) -> None:
+    def __init__(
+        self,
+        simulator: LearnedSimulator,
+        huber_delta: float | None = None,
+        target_weight: float = 0.0,
+    ) -> None:
         super().__init__()
         self.simulator = simulator
         self.huber_delta = huber_delta
+        self.target_weight = target_weight
 
     def _error(self, predicted: Tensor, target: Tensor) -> Tensor:
         """The loss of each particle (N,): its acceleration error summed over dimensions."""
         residual = predicted.float() - target.float()
         if self.huber_delta is None:
-            return residual.square().sum(dim=-1)
-        delta, size = self.huber_delta, residual.abs()
-        huber = torch.where(size <= delta, residual.square(), 2.0 * delta * size - delta**2)
-        return huber.sum(dim=-1)
+            error = residual.square()
+        else:
+            delta, size = self.huber_delta, residual.abs()
+            error = torch.where(size <= delta, residual.square(), 2.0 * delta * size - delta**2)
+        error = error.sum(dim=-1)
+        if self.target_weight:
+            error = error * (1.0 + self.target_weight * target.float().norm(dim=-1))
+        return error
 
     def forward(
         self,
@@ -469,7 +481,7 @@ def train(
         tc.mirror_axes, simulator.scene.dim, dataset.metadata.acc_mean, dataset.metadata.acc_std
     )
 
-    step_module: nn.Module = TrainingStep(simulator, tc.huber_delta)
+    step_module: nn.Module = TrainingStep(simulator, tc.huber_delta, tc.target_weight)
     if world > 1:
         for module in simulator.modules():
             if isinstance(module, RunningNormalizer):
