@@ -372,14 +372,14 @@ class TrainConfig:
     huber_delta: the loss per particle and dimension is the Huber loss of the normalised
         acceleration error with this delta, scaled to equal the squared error below it
         (r^2 for |r| <= delta, 2 delta |r| - delta^2 beyond); None (the paper's): the squared
-        error everywhere. Meant for data where a few impacts hold most of the acceleration
-        variance (sand landing: the top 1.5% of particle-steps hold 83% of the shipped sand
-        model's squared error on its training data) and so drive the gradient. Measured on
-        that model (docs/sand-ablation.md): it fitted the common accelerations a little
-        better and rolled out worse.
+        error everywhere. For data where a few impacts hold most of the acceleration's
+        variance and so drive the gradient (sand: the largest 1% of the accelerations hold
+        about 80% of their squares, the moments of landing).
     target_weight: each particle's loss is multiplied by 1 + target_weight |a|, |a| the 2-norm
-        of its normalised target acceleration: the landings count more than their square
-        alone. 0 (the paper's): every particle alike.
+        of its normalised target acceleration, so that impacts count more than their square
+        alone; 0 (the paper's): every particle alike. On the sand model neither this nor
+        huber_delta helped: each moved the fit between the flow and the landings and rolled
+        out worse than the squared error (docs/sand-ablation.md).
     """
 
     steps: int = 20_000_000

@@ -2,7 +2,8 @@
 
 One gradient step (`TrainingStep.forward`): sample the input noise (C.2), add the batch to the
 running statistics (B.2), predict the normalised acceleration, and take the squared error summed
-over dimensions and averaged over the non-kinematic particles of the whole (global) batch; with
+over dimensions (or train.huber_delta's Huber loss, train.target_weight's weighting) and
+averaged over the non-kinematic particles of the whole (global) batch; with
 train.loss_steps = K > 1, plus the errors of K - 1 further steps predicted from the model's own
 predictions (the multi-step loss CConv was trained with); with train.pushforward, from inputs
 the model first pushed forward itself. The network is the GNS or, with
@@ -90,11 +91,12 @@ def _split_targets(tensors: dict[str, Tensor | None], history: int) -> tuple[Ten
 class TrainingStep(nn.Module):
     """The loss of one batch, as a module so DDP's forward (and its gradient hooks) see it.
 
-    forward returns (sum over non-kinematic particles of the squared acceleration error summed
-    over dimensions, the number of those particles); the trainer divides by the global count.
-    With huber_delta (TrainConfig.huber_delta), each dimension's error beyond it counts
-    linearly (the Huber loss, scaled to equal the squared error below delta); with
-    target_weight w (TrainConfig.target_weight), a particle's loss is multiplied by 1 + w |a|,
+    forward returns (sum over non-kinematic particles of their loss, the number of those
+    particles); the trainer divides by the global count. A particle's loss is its squared
+    acceleration error summed over dimensions (normalised units), as in the paper. With
+    huber_delta (TrainConfig.huber_delta), each dimension's error beyond it counts linearly
+    (the Huber loss, scaled to equal the squared error below delta); with target_weight w
+    (TrainConfig.target_weight), a particle's loss is multiplied by 1 + w |a|,
     |a| the 2-norm of its normalised target acceleration.
 
     With later_positions (N, K - 1, D), the ground truth of K - 1 further frames, the loss adds
@@ -184,7 +186,7 @@ class TrainingStep(nn.Module):
             obstacles=obstacles,
         )
         free = ~simulator.kinematic_mask(particle_type)
-        squared = self._error(predicted, target)
+        loss = self._error(predicted, target)
         if later_positions is not None:
             kinematic = ~free[:, None]
             sequence = position_sequence + position_sequence_noise
@@ -198,8 +200,8 @@ class TrainingStep(nn.Module):
                 target = simulator.target_normalized_acceleration(
                     truth, sequence, position_sequence_noise
                 )
-                squared = squared + self._error(predicted, target)
-        return squared[free].sum(), free.sum()
+                loss = loss + self._error(predicted, target)
+        return loss[free].sum(), free.sum()
 
     @torch.no_grad()
     def _push_forward(
@@ -615,7 +617,7 @@ def train(
             )
             shift = simulator.sample_wall_push(sequence, t["particle_type"], generator)  # type: ignore[arg-type]
             unroll = _pushforward_steps(tc, step)
-            squared_sum, count = step_module(
+            loss_sum, count = step_module(
                 sequence,
                 targets[:, 0],
                 noise,
@@ -628,12 +630,12 @@ def train(
                 obstacles=batch_obstacles(batch),
                 wall_shift=shift,
             )
-            count = count.to(squared_sum.dtype)
+            count = count.to(loss_sum.dtype)
             if world > 1:
                 _all_reduce_sum(count)
             # DDP averages gradients over ranks: world * (local sum) / (global count) makes that
             # average the gradient of the mean over every particle of the global batch.
-            loss = squared_sum * world / count.clamp(min=1.0)
+            loss = loss_sum * world / count.clamp(min=1.0)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             # Before the optimizer applies anything: are the loss and every gradient finite?
