@@ -4,7 +4,8 @@
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`); DATA: a dataset folder.
 Every `every`-th window of `trajectories` trajectories (spread evenly over the split) is
-predicted from the ground truth's frames (no noise, no rollout), at the model's frame stride.
+predicted from the ground truth's frames (no noise, no rollout), at the model's frame stride;
+kinematic particles, which follow the truth, do not count.
 The particle-steps are binned by the size of their true acceleration, in units of its std over
 them (per axis: the same units for every model on the same data). Each bin prints its share
 of the particle-steps, the slope of predicted on true acceleration (1: all of it; 0.5: half),
@@ -21,6 +22,8 @@ import argparse
 import gns
 import numpy as np
 import torch
+from gns.data.windows import window_keys
+from gns.evaluate import one_step_predictions
 
 BINS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, np.inf)
 
@@ -39,23 +42,17 @@ def main() -> None:
     stride = simulator.frame_stride_for(dataset.metadata)
     history = simulator.config.model.velocity_history + 1
     chosen = np.unique(np.linspace(0, len(dataset) - 1, min(args.trajectories, len(dataset))))
+    trajectories = [gns.data.at_frame_stride(dataset[int(i)], stride) for i in chosen]
+    pairs = [(k, s) for k, s in window_keys(trajectories, history) if s % args.every == 0]
     true, predicted = [], []
-    for index in chosen.astype(int):
-        trajectory = gns.data.at_frame_stride(dataset[index], stride)
-        positions = trajectory.positions
-        types = torch.as_tensor(trajectory.particle_type)
-        for start in range(0, len(positions) - history, args.every):
-            frames = positions[start : start + history]
-            context = None
-            if trajectory.step_context is not None:
-                context = torch.as_tensor(trajectory.step_context[start + history - 1])[None]
-            with torch.no_grad():
-                following = simulator.predict_positions(
-                    torch.as_tensor(np.swapaxes(frames, 0, 1)), types, context=context
-                ).numpy()
-            true.append(positions[start + history] - 2 * frames[-1] + frames[-2])
-            predicted.append(following - 2 * frames[-1] + frames[-2])
-    true_all = np.concatenate(true).astype(np.float64)
+    for sequence, truth, following, free in one_step_predictions(simulator, trajectories, pairs):
+        # Second differences as the model takes them (minimum images on periodic axes).
+        sequence, last = sequence.double(), sequence[:, -1].double()
+        velocity = simulator.displacement(last, sequence[:, -2])
+        true.append((simulator.displacement(truth.double(), last) - velocity)[free].numpy())
+        moved = simulator.displacement(following.double(), last)
+        predicted.append((moved - velocity)[free].numpy())
+    true_all = np.concatenate(true)
     std = true_all.std(axis=0)
     a, p = true_all / std, np.concatenate(predicted) / std
     size = np.linalg.norm(a, axis=1)

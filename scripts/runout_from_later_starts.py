@@ -5,9 +5,10 @@
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`); DATA: a dataset folder in
 which the deposits are measured along x. For each trajectory and each start s (in the model's
 steps), the model is rolled out from the ground truth's frames s ... s + C to the trajectory's
-end, and the runout of its last frame (the 99th minus the 1st percentile of x) is printed over
-the truth's: a ratio near 1 from start s on means the model keeps what the truth has reached by
-then, and the runout is lost before s.
+end, and the runout of its last frame (the 99th minus the 1st percentile of x over the free,
+not kinematic, particles, as `gns eval` measures it) is printed over the truth's: a ratio near
+1 from start s on means the model keeps what the truth has reached by then, and the runout is
+lost before s.
 """
 
 from __future__ import annotations
@@ -38,7 +39,8 @@ def main() -> None:
     ratios = []
     for index in range(len(dataset)):
         trajectory = gns.data.at_frame_stride(dataset[index], stride)
-        truth = runout_extent(trajectory.positions[-1])
+        free = ~simulator.scene.kinematic_mask(trajectory.particle_type)  # as gns eval measures
+        truth = runout_extent(trajectory.positions[-1], free)
         row = []
         for start in args.starts:
             context = trajectory.step_context
@@ -47,7 +49,8 @@ def main() -> None:
                 positions=trajectory.positions[start:],
                 step_context=None if context is None else context[start:],
             )
-            row.append(runout_extent(rollout(simulator, later).predicted_trajectory[-1]) / truth)
+            last = rollout(simulator, later).predicted_trajectory[-1]
+            row.append(runout_extent(last, free) / truth)
         ratios.append(row)
         print(f"| {index} | " + " | ".join(f"{r:.2f}" for r in row) + " |", flush=True)
     mean = np.mean(ratios, axis=0)

@@ -3,6 +3,7 @@ to two baselines on the same frames: constant velocity (every particle keeps its
 and static (every particle stays where the last input frame has it).
 
     one_step_errors(simulator, dataset)   position MSE of single steps from ground-truth inputs
+    one_step_predictions(...)             those single steps themselves, window by window
     evaluate_rollouts(rollouts)           per-trajectory and mean rollout metrics (MSE over time
                                           and at horizons, OT, MMD), model and baselines, plus
                                           how far any particle left the box and the deposit:
@@ -18,11 +19,12 @@ what is compared with what.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from gns.baselines import constant_velocity_rollout, static_rollout
 from gns.batches import batch_obstacles, batch_tensors
@@ -48,6 +50,7 @@ __all__ = [
     "generalisation",
     "mean_neighbours",
     "one_step_errors",
+    "one_step_predictions",
     "outside_box",
     "rest_summary",
     "rest_test",
@@ -58,6 +61,36 @@ __all__ = [
 MODELS = ("model", "constant_velocity", "static")
 # Per-frame curves, kept per trajectory and left out of the means.
 CURVES = ("mse", *DEPOSIT_CURVES)
+
+
+@torch.no_grad()
+def one_step_predictions(
+    simulator: LearnedSimulator,
+    trajectories: Sequence[Any],
+    pairs: Sequence[tuple[int, int]],
+    device: torch.device | str = "cpu",
+) -> Iterator[tuple[Tensor, Tensor, Tensor, Tensor]]:
+    """For each (trajectory index, start) of `pairs` (gns.data.windows.window_keys): the input
+    sequence (N, C + 1, D), the true next frame (N, D), the model's next frame (N, D) from
+    those ground-truth inputs, and which particles are free, not kinematic (N,) bool. The
+    simulator's mode is the caller's (eval for a prediction)."""
+    history = simulator.config.model.velocity_history + 1
+    device = torch.device(device)
+    for k, start in pairs:
+        window = next(trajectory_windows(trajectories[k], history, [start]))
+        batch = collate([window])
+        t = batch_tensors(batch, device)
+        sequence, truth = t["position_sequence"], t["next_position"]
+        assert sequence is not None and truth is not None and t["particle_type"] is not None
+        predicted = simulator.predict_positions(
+            sequence,
+            t["particle_type"],
+            t["n_node"],
+            t["context"],
+            t["material_property"],
+            obstacles=batch_obstacles(batch),
+        )
+        yield sequence, truth, predicted, ~simulator.kinematic_mask(t["particle_type"])
 
 
 @torch.no_grad()
@@ -80,23 +113,11 @@ def one_step_errors(
         pairs = [pairs[i] for i in np.linspace(0, len(pairs) - 1, max_windows).round().astype(int)]
     was_training = simulator.training
     simulator.eval()
-    device = torch.device(device)
     sums = {name: 0.0 for name in MODELS}
     try:
-        for k, start in pairs:
-            window = next(trajectory_windows(trajectories[k], history, [start]))
-            batch = collate([window])
-            t = batch_tensors(batch, device)
-            sequence, truth = t["position_sequence"], t["next_position"]
-            assert sequence is not None and truth is not None and t["particle_type"] is not None
-            predicted = simulator.predict_positions(
-                sequence,
-                t["particle_type"],
-                t["n_node"],
-                t["context"],
-                t["material_property"],
-                obstacles=batch_obstacles(batch),
-            )
+        for sequence, truth, predicted, free in one_step_predictions(
+            simulator, trajectories, pairs, device
+        ):
             # Differences as the model takes them: minimum images on periodic axes.
             last = sequence[:, -1]
             guesses = {
@@ -106,7 +127,6 @@ def one_step_errors(
                 ),
                 "static": last,
             }
-            free = ~simulator.kinematic_mask(t["particle_type"])
             for name, guess in guesses.items():
                 error = simulator.displacement(guess.double(), truth.double())[free].square().mean()
                 sums[name] += float(error)
