@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import importlib.util
+import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 from gns.checkpoints import load_simulator
 from gns.data import at_frame_stride, open_dataset
+from gns.mpm import lattice
 from gns.rollout import rollout
 
 SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
@@ -76,3 +81,58 @@ def test_runout_from_later_starts_matches_a_rollout_measured_here(strided):
         assert float(rows[index][1]) == pytest.approx(width(whole, free) / truth, abs=0.006)
         # From the last start the model predicts one step of slow motion: the truth's width.
         assert float(rows[index][2]) == pytest.approx(1.0, abs=0.02)
+
+
+def load_script(name: str):
+    """A script in scripts/ as a module, to call its functions with a stand-in simulator."""
+    spec = importlib.util.spec_from_file_location(name.removesuffix(".py"), SCRIPTS / name)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class Stepper:
+    """A stand-in simulator that steps its input by the Euler update with `acceleration` (per
+    step^2, along y) and keeps what it was given."""
+
+    def __init__(self, dt: float, acceleration: float, velocity_history: int = 5):
+        self.scene = SimpleNamespace(dt=dt)
+        self.config = SimpleNamespace(model=SimpleNamespace(velocity_history=velocity_history))
+        self.acceleration = acceleration
+
+    def predict_positions(self, positions, particle_type, context=None):
+        self.given = positions.numpy().astype(np.float64)
+        last, before = positions[:, -1].double(), positions[:, -2].double()
+        return 2 * last - before + torch.tensor([0.0, self.acceleration], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.0, 0.5])
+def test_free_fall_probe_reads_a_simulators_fall_in_g(fraction):
+    probe = load_script("free_fall_probe.py")
+    dt = 0.0075
+    g_step = 9.81 * dt**2
+    stepper = Stepper(dt, -fraction * g_step)
+    block = lattice((0.4, 0.45), (0.2, 0.2), 1 / 128)
+    mean, bottom, top = probe.fall_in_g(stepper, block, 0.5, 6)
+    assert (mean, bottom, top) == pytest.approx((fraction,) * 3, abs=1e-9)
+    # What the simulator was given: 6 frames of free fall (every step's acceleration -g along y,
+    # none along x), at rest in the last, the block itself there.
+    history = stepper.given
+    assert history.shape == (len(block), 6, 2)
+    acceleration = history[:, 2:] - 2 * history[:, 1:-1] + history[:, :-2]
+    # (float32 positions near 0.5: round-off 3e-8 against 5.5e-4 a step)
+    np.testing.assert_allclose(acceleration[..., 1], -g_step, rtol=1e-3)
+    np.testing.assert_allclose(acceleration[..., 0], 0.0, atol=1e-7)
+    np.testing.assert_allclose(history[:, -1], history[:, -2], atol=1e-7)
+    np.testing.assert_allclose(history[:, -1], block, atol=1e-7)
+
+
+def test_free_fall_probe_runs_on_a_trained_model(strided):
+    run, _, _ = strided
+    [line] = run_script("free_fall_probe.py", str(run))
+    assert re.fullmatch(
+        rf"{re.escape(str(run))}: falls at -?\d+\.\d\d g \(bottom row -?\d+\.\d\d g, top row "
+        r"-?\d+\.\d\d g\)",
+        line,
+    ), line
