@@ -80,10 +80,10 @@ def main() -> None:
                 f"{name}: the block at {args.corner}, {args.size} wide, is not inside the "
                 f"model's box {scene.bounds}; move it with --corner"
             )
-        # The friction angle is sand2d-taichi's context: tan(angle), one value.
-        context = math.tan(math.radians(args.friction_angle)) if scene.context_size else None
         if scene.context_size > 1:
             raise SystemExit(f"{name}: context of {scene.context_size} values; the probe gives 1")
+        # The friction angle is sand2d-taichi's context: tan(angle), one value.
+        context = math.tan(math.radians(args.friction_angle)) if scene.context_size else None
         free = [t for t in scene.particle_types if t not in scene.kinematic_particle_types]
         particle_type = args.particle_type
         if particle_type is None:
