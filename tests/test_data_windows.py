@@ -173,3 +173,32 @@ def test_window_sampler_refuses_a_window_over_the_particle_budget():
     trajectories = _sampler_trajectories()
     with pytest.raises(ValueError, match="particle budget"):
         WindowSampler(trajectories).next_batch(2, max_particles=3)
+
+
+def test_window_sampler_deals_early_windows_repeatedly():
+    trajectories = _sampler_trajectories()
+    sampler = WindowSampler(
+        trajectories, seed=5, trajectories_in_memory=2, early_steps=2, early_repeat=3
+    )
+    # Per epoch: the 10 windows starting at 0 or 1 three times each, the other 15 once.
+    counts = Counter(_keys(sampler, 45))
+    expected = {
+        (k, s): 3 if s < 2 else 1
+        for k, t in enumerate(trajectories)
+        for s in range(t.num_frames - 6)
+    }
+    assert counts == expected
+    # Repeats are shuffled into the epoch, and the state still restores the same sequence.
+    resumed = WindowSampler(
+        trajectories, seed=5, trajectories_in_memory=2, early_steps=2, early_repeat=3
+    )
+    resumed.load_state_dict(sampler.state_dict())
+    assert _keys(resumed, 20) == _keys(sampler, 20)
+    # Off by default: the order is the one without these arguments.
+    plain, off = (
+        WindowSampler(trajectories, seed=5),
+        WindowSampler(trajectories, seed=5, early_steps=4),
+    )
+    assert _keys(plain, 25) == _keys(off, 25)
+    with pytest.raises(ValueError, match="early_repeat >= 1, got 0 and 0"):
+        WindowSampler(trajectories, early_repeat=0)

@@ -96,13 +96,15 @@ def read_csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-@pytest.mark.parametrize("mirror_axes", [(), (0, 1)])
-def test_resume_continues_exactly(tmp_path, mirror_axes):
+@pytest.mark.parametrize(
+    "settings", [{}, {"mirror_axes": (0, 1)}, {"early_steps": 2, "early_repeat": 3}]
+)
+def test_resume_continues_exactly(tmp_path, settings):
     data = make_dataset(tmp_path / "data")
     # 6 trajectories, 2 in memory, 6 windows each at batch 2: chunks change every 6 steps, and
     # the 21 steps cross epochs, so the sampler, noise stream and optimiser state all matter
-    # (and with mirroring, which windows are mirrored).
-    cfg = lambda steps: config(steps, mirror_axes=mirror_axes)  # noqa: E731
+    # (and with mirroring, which windows are mirrored; with early windows, the longer epochs).
+    cfg = lambda steps: config(steps, **settings)  # noqa: E731
     straight = train(data, tmp_path / "a", cfg(21), progress=False)
     train(data, tmp_path / "b", cfg(8), progress=False)
     resumed = train(data, tmp_path / "b", cfg(21), resume=True, progress=False)
@@ -313,6 +315,10 @@ def test_loss_is_the_mean_over_free_particles_and_ignores_kinematic_targets_and_
     assert float(heavier) == pytest.approx(float(by_hand[keep].sum()), rel=1e-5)
     with pytest.raises(ValueError, match="target_weight must be >= 0, got nan"):
         TrainConfig(target_weight=float("nan"))
+    with pytest.raises(ValueError, match="early_steps must be >= 0, got -1"):
+        TrainConfig(early_steps=-1)
+    with pytest.raises(ValueError, match="early_repeat must be positive, got 0"):
+        TrainConfig(early_repeat=0)
 
 
 def test_training_reduces_the_loss_and_validates(tmp_path):
@@ -446,11 +452,14 @@ def test_validation_prefers_rollouts_that_stay_in_the_box():
     assert better_validation({}, None, radius) is None
 
 
-def test_mirror_axes_change_what_training_sees(tmp_path):
+def test_mirror_axes_and_early_windows_change_what_training_sees(tmp_path):
     data = make_dataset(tmp_path / "data")
     plain = parameters(train(data, tmp_path / "a", config(6), progress=False))
     mirrored = parameters(train(data, tmp_path / "b", config(6, mirror_axes=(0,)), progress=False))
     assert any(not torch.equal(plain[k], mirrored[k]) for k in plain)
+    early = config(6, early_steps=2, early_repeat=3)
+    repeated = parameters(train(data, tmp_path / "c", early, progress=False))
+    assert any(not torch.equal(plain[k], repeated[k]) for k in plain)
 
 
 def test_a_diverging_validation_rollout_is_the_worst_figure_not_a_crash(tmp_path):

@@ -380,6 +380,10 @@ class TrainConfig:
         alone; 0 (the paper's): every particle alike. On the sand model neither this nor
         huber_delta helped: each moved the fit between the flow and the landings and rolled
         out worse than the squared error (docs/sand-ablation.md).
+    early_steps, early_repeat: the windows whose first target is among a trajectory's first
+        early_steps predicted frames are drawn early_repeat times per epoch, the others once,
+        for data whose motion is mostly at the start (a block falls, lands and spreads, then
+        rests); 0 and 1 (the paper's): every window alike.
     """
 
     steps: int = 20_000_000
@@ -404,6 +408,8 @@ class TrainConfig:
     max_grad_norm: float | None = None
     huber_delta: float | None = None
     target_weight: float = 0.0
+    early_steps: int = 0
+    early_repeat: int = 1
 
     @property
     def extra_frames(self) -> int:
@@ -422,6 +428,7 @@ class TrainConfig:
             "checkpoint_every",
             "keep_checkpoints",
             "loss_steps",
+            "early_repeat",
         )
         if self.pushforward and not (
             all(math.isfinite(w) and w >= 0 for w in self.pushforward) and sum(self.pushforward) > 0
@@ -447,6 +454,7 @@ class TrainConfig:
             "validation_windows",
             "validation_rollouts",
             "validation_rollout_steps",
+            "early_steps",
         ):
             if getattr(self, name) < 0:
                 raise ValueError(f"TrainConfig.{name} must be >= 0, got {getattr(self, name)}")

@@ -501,6 +501,8 @@ def train(
         trajectories_in_memory=tc.trajectories_in_memory,
         rank=rank,
         world_size=world,
+        early_steps=tc.early_steps,
+        early_repeat=tc.early_repeat,
     )
     generator = torch.Generator(device=device)
     generator.manual_seed(tc.seed * 1_000_003 + rank)

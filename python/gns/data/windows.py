@@ -252,6 +252,10 @@ class WindowSampler:
     is (epoch, chunk, position), so a checkpoint can restart the exact same sequence of batches
     without replaying the data (a streaming shuffle buffer could not be restored).
 
+    early_steps and early_repeat: the windows whose first target is among a trajectory's first
+    early_steps predicted frames (start < early_steps) are dealt early_repeat times per epoch,
+    the others once; 0 and 1 (the default): every window once.
+
     With world_size > 1 (distributed training) every rank computes the same order and rank r
     takes the windows at positions r, r + world_size, ...: ranks see disjoint data. A chunk's
     order is cut to a multiple of world_size (at most world_size - 1 windows of each chunk go
@@ -267,12 +271,19 @@ class WindowSampler:
         trajectories_in_memory: int = 64,
         rank: int = 0,
         world_size: int = 1,
+        early_steps: int = 0,
+        early_repeat: int = 1,
     ) -> None:
         if len(trajectories) == 0:
             raise ValueError("WindowSampler needs at least one trajectory")
         if trajectories_in_memory < 1:
             raise ValueError(
                 f"trajectories_in_memory must be at least 1, got {trajectories_in_memory}"
+            )
+        if early_steps < 0 or early_repeat < 1:
+            raise ValueError(
+                f"early_steps must be >= 0 and early_repeat >= 1, got {early_steps} and "
+                f"{early_repeat}"
             )
         if not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} is not in [0, world_size={world_size})")
@@ -281,6 +292,7 @@ class WindowSampler:
         self.seed = seed
         self.trajectories_in_memory = trajectories_in_memory
         self.rank, self.world_size = rank, world_size
+        self.early_steps, self.early_repeat = early_steps, early_repeat
         self.epoch = self.chunk = self.position = 0
         self._loaded: tuple[int, int] | None = None
         self._chunk: list[Trajectory] = []
@@ -307,6 +319,8 @@ class WindowSampler:
         self._chunk = [self.trajectories[int(i)] for i in members]
         pairs = window_keys(self._chunk, self.input_sequence_length)
         order = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        early = order[order[:, 1] < self.early_steps]
+        order = np.concatenate([order, *[early] * (self.early_repeat - 1)])
         rng = np.random.default_rng([self.seed, self.epoch, self.chunk])
         order = order[rng.permutation(len(order))]
         self._order = order[: len(order) - len(order) % self.world_size]
