@@ -16,44 +16,12 @@ scene's one free (not kinematic) type unless --particle-type says which.
 from __future__ import annotations
 
 import argparse
-import math
-from typing import Any
 
 import gns
-import numpy as np
 import torch
+from gns import probes
 from gns.mpm import lattice
-
-GRAVITY = 9.81  # m/s^2, along -y
-
-
-def thrown_block(block: np.ndarray, frames: int, g_step: float) -> np.ndarray:
-    """(N, frames, 2) positions of `block` thrown up, at the top of the throw in the last frame:
-    y_k = y - g k (k + 1) / 2 for k = -(frames - 1) ... 0, so each step's acceleration is -g and
-    the last velocity is 0."""
-    k = np.arange(-(frames - 1), 1)
-    drop = -0.5 * g_step * k * (k + 1)
-    return np.stack([block + [0.0, d] for d in drop], axis=1)
-
-
-def fall_in_g(simulator: Any, block: np.ndarray, context: float | None, particle_type: int):
-    """The block's vertical acceleration in one predicted step, over g: (mean, bottom row, top
-    row); positive is downward."""
-    g_step = GRAVITY * simulator.scene.dt**2  # the model steps dt = the data's frame spacing
-    given = torch.tensor(
-        thrown_block(block, simulator.config.model.velocity_history + 1, g_step),
-        dtype=torch.float32,
-    )
-    history = given.double().numpy()  # what the model sees, rounded to float32
-    with torch.no_grad():
-        following = simulator.predict_positions(
-            given,
-            torch.full((len(block),), particle_type),
-            context=None if context is None else torch.tensor([[context]], dtype=torch.float32),
-        ).numpy()
-    fall = -(following[:, 1] - 2 * history[:, -1, 1] + history[:, -2, 1]) / g_step
-    y = block[:, 1]
-    return fall.mean(), fall[y == y.min()].mean(), fall[y == y.max()].mean()
+from gns.probes import fall_in_g  # noqa: F401 (tests call it through this script)
 
 
 def main() -> None:
@@ -70,8 +38,6 @@ def main() -> None:
     for name in args.models:
         simulator = gns.load_simulator(name).eval()
         scene = simulator.scene
-        if scene.dim != 2 or scene.dt is None:
-            raise SystemExit(f"{name}: the probe needs a 2D model that records its step (dt)")
         if scene.bounds is not None and not all(
             lo <= c and c + args.size <= hi
             for c, (lo, hi) in zip(args.corner, scene.bounds, strict=True)
@@ -80,17 +46,13 @@ def main() -> None:
                 f"{name}: the block at {args.corner}, {args.size} wide, is not inside the "
                 f"model's box {scene.bounds}; move it with --corner"
             )
-        if scene.context_size > 1:
-            raise SystemExit(f"{name}: context of {scene.context_size} values; the probe gives 1")
-        # The friction angle is sand2d-taichi's context: tan(angle), one value.
-        context = math.tan(math.radians(args.friction_angle)) if scene.context_size else None
-        free = [t for t in scene.particle_types if t not in scene.kinematic_particle_types]
-        particle_type = args.particle_type
-        if particle_type is None:
-            if len(free) != 1:
-                raise SystemExit(f"{name}: free particle types {free}; say which: --particle-type")
-            particle_type = free[0]
-        mean, bottom, top = fall_in_g(simulator, block, context, particle_type)
+        try:
+            context, particle_type = probes.probe_inputs(
+                simulator, args.friction_angle, args.particle_type
+            )
+            mean, bottom, top = probes.fall_in_g(simulator, block, context, particle_type)
+        except ValueError as err:
+            raise SystemExit(f"{name}: {err}") from err
         print(f"{name}: falls at {mean:.2f} g (bottom row {bottom:.2f} g, top row {top:.2f} g)")
 
 

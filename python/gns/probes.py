@@ -1,0 +1,313 @@
+"""Probes of what a particle model can see and has learned, cheap enough to run on every
+candidate before a long training (docs/probes.md; scripts/free_fall_probe.py and
+scripts/probe.py run them):
+
+    fall_in_g         a block in free fall far from every wall: its predicted acceleration
+                      over g (every real simulator: 1)
+    reach_by_hop      how strongly a particle's prediction depends on the inputs of the
+                      particles k graph hops away: how far the network carries information
+    floor_shift       how much moving the floor 1 m away changes the predictions, by height
+                      above it: how far up a block the floor is seen
+    landing_timeline  acceleration and density by height band through a block's landing,
+                      the truth against the model's one-step predictions and its rollout
+
+Positions are (N, C + 1, D) histories, most recent last, as LearnedSimulator takes them.
+Accelerations are in units of g per step^2 (g = 9.81 m/s^2 times dt^2), positive upwards, so
+a block in free fall reads -1 and a landing a large positive number.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+GRAVITY = 9.81  # m/s^2, along -y (the last axis but one in 3D is not handled: 2D scenes)
+
+__all__ = [
+    "GRAVITY",
+    "block_history",
+    "fall_in_g",
+    "floor_shift",
+    "height_bands",
+    "hop_counts",
+    "landing_frame",
+    "landing_timeline",
+    "neighbour_counts",
+    "probe_inputs",
+    "reach_by_hop",
+    "untrained_copy",
+]
+
+
+def block_history(
+    block: np.ndarray, frames: int, g_step: float, last_velocity: float = 0.0
+) -> np.ndarray:
+    """(N, frames, 2) positions of `block` (N, 2) in free fall, at `block` in the last frame:
+    y_k = y + u k - g k (k + 1) / 2 for k = -(frames - 1) ... 0, so every step's acceleration
+    is -g and the last step's velocity (y_0 - y_-1) is u = `last_velocity` (per step; 0: the
+    top of a throw upwards)."""
+    k = np.arange(-(frames - 1), 1)
+    rise = last_velocity * k - 0.5 * g_step * k * (k + 1)
+    return np.stack([block + [0.0, d] for d in rise], axis=1)
+
+
+def probe_inputs(
+    simulator: Any, friction_angle: float = 30.0, particle_type: int | None = None
+) -> tuple[Tensor | None, int]:
+    """The step context and the particle type a probe gives a 2D sand model: tan(friction
+    angle) when the scene has a context of one value (sand2d-taichi's), and the scene's one
+    free (not kinematic) type unless `particle_type` says which."""
+    scene = simulator.scene
+    if scene.dim != 2:
+        raise ValueError(f"the probes take 2D scenes, this one is {scene.dim}D")
+    if scene.context_size > 1:
+        raise ValueError(f"the scene has a context of {scene.context_size} values; probes give 1")
+    context = None
+    if scene.context_size:
+        context = torch.tensor([[math.tan(math.radians(friction_angle))]], dtype=torch.float32)
+    if particle_type is None:
+        free = [t for t in scene.particle_types if t not in scene.kinematic_particle_types]
+        if len(free) != 1:
+            raise ValueError(f"free particle types {free}; say which one the probe gives")
+        particle_type = free[0]
+    return context, particle_type
+
+
+def g_step(simulator: Any) -> float:
+    """g in position units per step^2: the model steps dt, the data's frame spacing."""
+    if simulator.scene.dt is None:
+        raise ValueError("the probe needs a model that records its step (scene.dt)")
+    return GRAVITY * simulator.scene.dt**2
+
+
+def _accelerations(
+    simulator: Any, history: np.ndarray, particle_type: int, context: Tensor | None
+) -> np.ndarray:
+    """(N, 2) predicted accelerations, float64, of one step from `history` (N, C + 1, 2): the
+    prediction's second difference with the history as the model sees it (float32)."""
+    given = torch.tensor(history, dtype=torch.float32)
+    with torch.no_grad():
+        following = simulator.predict_positions(
+            given, torch.full((len(history),), particle_type), context=context
+        )
+    seen = given.double().numpy()
+    return following.double().numpy() - 2 * seen[:, -1] + seen[:, -2]
+
+
+def fall_in_g(simulator: Any, block: np.ndarray, context: Tensor | None, particle_type: int):
+    """The block's vertical acceleration in one predicted step from the top of a throw (free
+    fall throughout), over g: (mean, bottom row, top row); positive is downward."""
+    g = g_step(simulator)
+    history = block_history(block, simulator.config.model.velocity_history + 1, g)
+    fall = -_accelerations(simulator, history, particle_type, context)[:, 1] / g
+    y = block[:, 1]
+    return fall.mean(), fall[y == y.min()].mean(), fall[y == y.max()].mean()
+
+
+# ---------------------------------------------------------------------------------- reach
+
+
+def hop_counts(senders: np.ndarray, receivers: np.ndarray, n: int, targets: Sequence[int]):
+    """(len(targets), n) int64: the fewest edges a message needs from each particle to each
+    target (0 for the target itself, -1 where none arrives), along senders -> receivers."""
+    senders, receivers = np.asarray(senders), np.asarray(receivers)
+    order = np.argsort(receivers, kind="stable")
+    into = np.searchsorted(receivers[order], np.arange(n + 1))  # edges into r: order[into[r]:]
+    from_ = senders[order]
+    hops = np.full((len(targets), n), -1, dtype=np.int64)
+    for row, target in enumerate(targets):
+        hops[row, target] = 0
+        frontier, k = np.array([target]), 0
+        while len(frontier):
+            k += 1
+            incoming = np.concatenate([from_[into[r] : into[r + 1]] for r in frontier])
+            fresh = np.unique(incoming[hops[row, incoming] < 0])
+            hops[row, fresh] = k
+            frontier = fresh
+    return hops
+
+
+def reach_by_hop(
+    simulator: Any,
+    history: np.ndarray,
+    particle_type: int,
+    context: Tensor | None,
+    targets: Sequence[int],
+    max_hop: int = 8,
+) -> dict[str, np.ndarray]:
+    """How much the network's output at each target particle depends on the node inputs of
+    particles k hops away, k = 0 ... max_hop.
+
+    The sensitivity of target i to particle j is the 2-norm of d(output_i) / d(node features_j)
+    (the Jacobian of the normalised acceleration, D rows, by particle j's normalised node
+    features: velocities, wall distances, context, type). Returns "mean" (the mean sensitivity
+    of a particle at hop k, over the targets' pairs, divided by that at hop 0), "total" (the
+    sum over all the particles at hop k, divided by hop 0's) and "pairs" (how many (target,
+    particle) pairs are at hop k). A network of M message-passing steps reaches exactly M hops:
+    beyond, the sensitivity is 0.
+    """
+    given = torch.tensor(history, dtype=torch.float32)
+    types = torch.full((len(history),), particle_type)
+    with torch.no_grad():
+        f = simulator.features(given, types, context=context)
+    nodes = f["node_features"].detach().requires_grad_(True)
+    output = simulator.model(
+        nodes, f["edge_features"], f["senders"], f["receivers"], f["global_features"], None
+    )
+    hops = hop_counts(f["senders"].numpy(), f["receivers"].numpy(), len(history), targets)
+    mean, total, pairs = (np.zeros(max_hop + 1) for _ in range(3))
+    for row, target in enumerate(targets):
+        squared = torch.zeros(len(history), dtype=torch.float64)
+        for d in range(output.shape[1]):
+            (grad,) = torch.autograd.grad(output[target, d], nodes, retain_graph=True)
+            squared += grad.double().pow(2).sum(dim=1)
+        sensitivity = squared.sqrt().numpy()
+        for k in range(max_hop + 1):
+            at_k = hops[row] == k
+            total[k] += sensitivity[at_k].sum()
+            pairs[k] += at_k.sum()
+    mean = np.divide(total, pairs, out=np.zeros_like(total), where=pairs > 0)
+    return {"mean": mean / mean[0], "total": total / total[0], "pairs": pairs}
+
+
+def untrained_copy(
+    simulator: Any,
+    seed: int = 0,
+    model: dict[str, Any] | None = None,
+    scene: dict[str, Any] | None = None,
+) -> Any:
+    """The same architecture with its network drawn afresh (torch's default initialisation,
+    seeded), or with the ModelConfig fields in `model` and the Scene fields in `scene`
+    changed: what a design sees before training. The normalisers are the simulator's, so the
+    inputs are scaled as the trained model's are."""
+    from gns.simulator import LearnedSimulator
+
+    config = simulator.config
+    config = dataclasses.replace(config, model=dataclasses.replace(config.model, **(model or {})))
+    torch.manual_seed(seed)
+    fresh = LearnedSimulator(dataclasses.replace(simulator.scene, **(scene or {})), config)
+    for name in ("velocity_normalizer", "acceleration_normalizer", "context_normalizer"):
+        ours = getattr(simulator, name)
+        if ours is not None:
+            getattr(fresh, name).load_state_dict(ours.state_dict())
+    return fresh.eval()
+
+
+# ---------------------------------------------------------------------------------- floor
+
+
+def floor_shift(
+    simulator: Any,
+    history: np.ndarray,
+    particle_type: int,
+    context: Tensor | None,
+    shift: float = 1.0,
+) -> np.ndarray:
+    """(N,) how much each particle's predicted acceleration changes, in g (the 2-norm of the
+    change), when the floor (the lower bound of the last axis) is moved `shift` further down:
+    all that a particle learns of the floor, directly or through its neighbours."""
+    scene = simulator.scene
+    if scene.bounds is None or (scene.dim - 1) not in scene.wall_axes:
+        raise ValueError("the floor probe needs a model with wall features on the vertical axis")
+    before = _accelerations(simulator, history, particle_type, context)
+    bounds = [list(pair) for pair in scene.bounds]
+    bounds[-1][0] -= shift
+    simulator.scene = dataclasses.replace(scene, bounds=tuple(map(tuple, bounds)))
+    try:
+        after = _accelerations(simulator, history, particle_type, context)
+    finally:
+        simulator.scene = scene
+    return np.linalg.norm(after - before, axis=1) / g_step(simulator)
+
+
+# ---------------------------------------------------------------------------------- landing
+
+
+def height_bands(first_frame: np.ndarray, bands: int) -> np.ndarray:
+    """(N,) band of each particle by its height in the first frame (N, 2): 0 the lowest
+    1/bands of the particles ... bands - 1 the highest. Bands follow the particles
+    (Lagrangian), so a band's density is that of the same sand before and after it lands."""
+    rank = np.argsort(np.argsort(first_frame[:, 1], kind="stable"), kind="stable")
+    return rank * bands // len(first_frame)
+
+
+def neighbour_counts(frame: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) how many other particles are within `radius` of each (Rust radius graph)."""
+    from gns import radius_graph
+
+    edges = radius_graph(np.asarray(frame, dtype=np.float64), radius, self_edges=False)
+    return np.bincount(edges[1], minlength=len(frame)).astype(np.float64)
+
+
+def landing_frame(accelerations: np.ndarray, band: np.ndarray, threshold: float) -> int | None:
+    """The first frame at which the lowest band's mean upward acceleration (accelerations:
+    (T, N) in g, positive up) exceeds `threshold` g, or None."""
+    bottom = accelerations[:, band == 0].mean(axis=1)
+    hits = np.flatnonzero(bottom > threshold)
+    return int(hits[0]) if len(hits) else None
+
+
+def landing_timeline(
+    truth: np.ndarray,
+    rollout: np.ndarray,
+    one_step: np.ndarray,
+    radius: float,
+    g: float,
+    *,
+    bands: int = 3,
+    threshold: float = 3.0,
+    before: int = 3,
+    after: int = 8,
+) -> dict[str, Any]:
+    """Acceleration and density by height band around the landing, the truth against a model.
+
+    truth: (T, N, 2) true positions at the model's step. rollout: (T, N, 2) the model's
+    rollout, whose first frames are the truth's (NaN where it has no frame). one_step: (T, N, 2)
+    the model's prediction of each frame t from the truth's frames before it (NaN where none).
+    g: gravity per step^2. The landing is the first frame at which the lowest band's mean
+    upward acceleration in the truth exceeds `threshold` g.
+
+    Returns "landing" (the frame, or None), "frames" (landing - before ... landing + after,
+    within the trajectory), and, each (frames, bands): "truth", "one_step" and "rollout" (the
+    band's mean vertical acceleration in g at that frame: the acceleration that arrives at
+    it, x_t - 2 x_{t-1} + x_{t-2}), "density_truth" and "density_rollout" (the band's mean
+    number of neighbours within the radius).
+    """
+    truth = np.asarray(truth, dtype=np.float64)
+    band = height_bands(truth[0], bands)
+    arriving = np.full(truth.shape[:2], np.nan)  # the acceleration that arrives at frame t
+    arriving[2:] = (truth[2:, :, 1] - 2 * truth[1:-1, :, 1] + truth[:-2, :, 1]) / g
+    landing = landing_frame(np.nan_to_num(arriving, nan=-np.inf), band, threshold)
+    result: dict[str, Any] = {"landing": landing, "bands": bands}
+    if landing is None:
+        return result
+    frames = np.arange(max(2, landing - before), min(len(truth), landing + after + 1))
+    result["frames"] = frames
+
+    def by_band(values: np.ndarray) -> np.ndarray:  # (N,) -> (bands,)
+        return np.array([values[band == b].mean() for b in range(bands)])
+
+    def arriving_at(predicted: np.ndarray, t: int, given: np.ndarray) -> np.ndarray:
+        # Frame t of `predicted` against the two frames before it in `given`: the model's own
+        # (a rollout) or the truth's (one step from the truth).
+        return (predicted[t, :, 1] - 2 * given[t - 1, :, 1] + given[t - 2, :, 1]) / g
+
+    rollout, one_step = np.asarray(rollout, np.float64), np.asarray(one_step, np.float64)
+    names = ("truth", "one_step", "rollout", "density_truth", "density_rollout")
+    rows: dict[str, list[np.ndarray]] = {name: [] for name in names}
+    for t in frames:
+        rows["truth"].append(by_band(arriving[t]))
+        rows["one_step"].append(by_band(arriving_at(one_step, t, truth)))
+        rows["rollout"].append(by_band(arriving_at(rollout, t, rollout)))
+        rows["density_truth"].append(by_band(neighbour_counts(truth[t], radius)))
+        finite = np.isfinite(rollout[t]).all()
+        density = by_band(neighbour_counts(rollout[t], radius)) if finite else np.nan
+        rows["density_rollout"].append(np.broadcast_to(density, (bands,)))
+    result.update({k: np.array(v) for k, v in rows.items()})
+    return result

@@ -1,0 +1,200 @@
+"""What a 2D sand model can see: its reach, the floor, and a landing (docs/probes.md).
+
+    python scripts/probe.py reach MODEL [MODEL ...] [--untrained] [--variant KEY=VALUE ...]
+    python scripts/probe.py floor MODEL [MODEL ...] [--shift 1.0]
+    python scripts/probe.py landing MODEL DATA SPLIT [--trajectories 0 1 ...] [--bands 3]
+
+MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block of reach and
+floor is a lattice (`--spacing`, `--size` wide; the defaults are sand2d-taichi's block and
+particle spacing) of the scene's one free particle type, with tan(--friction-angle) as the
+context where the model takes one.
+
+- reach: the block at the top of a throw in the middle of the box (free fall, no wall near);
+  the sensitivity of the 9 central particles' predictions to the node inputs of the
+  particles k graph hops away, over hop 0's: per particle and for all of hop k together.
+  --untrained adds the same architecture with fresh weights, and each --variant
+  model.FIELD=VALUE or scene.FIELD=VALUE (e.g. model.layer_norm=false, scene.radius=0.03) an
+  untrained one with that setting changed.
+- floor: the block on the floor at rest (its lowest row half a spacing above it), and 0.5 R
+  higher falling at --landing-speed m/s (the moment before a landing); the mean change of the predicted acceleration, in g, when
+  the floor is moved --shift further down, by height above the floor in radii.
+- landing: each trajectory rolled out from its first frames and predicted one step at a time
+  from the truth's; the mean vertical acceleration (g, up positive) and neighbour count of
+  the lowest, middle and highest third of the particles (by height in the first frame)
+  around the landing, the first frame at which the lowest third decelerates by 3 g.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import gns
+import numpy as np
+import torch
+from gns import probes
+from gns.data import at_frame_stride
+from gns.mpm import lattice
+from gns.rollout import rollout
+
+
+def block_in(simulator, args, where: str) -> np.ndarray:
+    """The probe's block: centred in x, in the middle of the box ("middle") or with its
+    lowest row half a spacing above the floor ("floor")."""
+    (x_lo, x_hi), (y_lo, y_hi) = simulator.scene.bounds or ((0.0, 1.0), (0.0, 1.0))
+    y = (y_lo + y_hi - args.size) / 2 if where == "middle" else y_lo
+    block = lattice(((x_lo + x_hi - args.size) / 2, y), (args.size, args.size), args.spacing)
+    if block[:, 0].min() < x_lo or block[:, 0].max() > x_hi or block[:, 1].max() > y_hi:
+        raise SystemExit(f"a block {args.size} wide does not fit the box {simulator.scene.bounds}")
+    return block
+
+
+def reach(args) -> None:
+    for name in args.models:
+        simulator = gns.load_simulator(name).eval()
+        context, kind = probes.probe_inputs(simulator, args.friction_angle)
+        block = block_in(simulator, args, "middle")
+        history = probes.block_history(
+            block, simulator.config.model.velocity_history + 1, probes.g_step(simulator)
+        )
+        centre = block.mean(axis=0)
+        targets = np.argsort(np.linalg.norm(block - centre, axis=1), kind="stable")[:9]
+        versions = [("trained", simulator)]
+        if args.untrained:
+            versions.append(("untrained", probes.untrained_copy(simulator)))
+        for variant in args.variant:
+            versions.append((f"untrained, {variant}", untrained_variant(simulator, variant)))
+        hops = " | ".join(str(k) for k in range(args.max_hop + 1))
+        print(f"{name}: sensitivity by graph hop, over hop 0's ({len(block)} particles)")
+        print(f"| network | per | {hops} |")
+        print("|---" * (args.max_hop + 3) + "|")
+        for label, model in versions:
+            r = probes.reach_by_hop(model, history, kind, context, targets, args.max_hop)
+            for per in ("mean", "total"):
+                cells = " | ".join(f"{v:.2g}" for v in r[per])
+                print(f"| {label} | {'particle' if per == 'mean' else 'hop'} | {cells} |")
+
+
+def untrained_variant(simulator, variant: str):
+    """The untrained architecture with one setting changed: "model.FIELD=VALUE" or
+    "scene.FIELD=VALUE", VALUE in JSON (true, 20, 0.03)."""
+    key, _, value = variant.partition("=")
+    section, _, field = key.partition(".")
+    if section not in ("model", "scene") or not field or not value:
+        raise SystemExit(f"--variant {variant!r}: expected model.FIELD=VALUE or scene.FIELD=VALUE")
+    try:
+        parsed = json.loads(value)
+    except json.JSONDecodeError as err:
+        raise SystemExit(f"--variant {variant!r}: {value!r} is not a JSON value") from err
+    return probes.untrained_copy(simulator, **{section: {field: parsed}})
+
+
+def floor(args) -> None:
+    for name in args.models:
+        simulator = gns.load_simulator(name).eval()
+        context, kind = probes.probe_inputs(simulator, args.friction_angle)
+        scene, frames = simulator.scene, simulator.config.model.velocity_history + 1
+        g = probes.g_step(simulator)
+        block = block_in(simulator, args, "floor")
+        floor_y = scene.bounds[-1][0]
+        rest = np.repeat(block[:, None], frames, axis=1)
+        speed = args.landing_speed * scene.dt
+        falling = probes.block_history(block + [0.0, 0.5 * scene.radius], frames, g, -speed)
+        edges = np.arange(0.0, args.size / scene.radius + args.bin, args.bin)
+        print(
+            f"{name}: change of the predicted acceleration (g) when the floor moves {args.shift} "
+            f"down, by height above the floor in R (walls seen from {scene.wall_clip:g} R)"
+        )
+        ranges = [f"{a:g}-{b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
+        print("| block | " + " | ".join(ranges) + " |")
+        print("|---" * len(edges) + "|")
+        for label, history in (("at rest", rest), ("landing", falling)):
+            change = probes.floor_shift(simulator, history, kind, context, args.shift)
+            height = (history[:, -1, 1] - floor_y) / scene.radius
+            where = np.digitize(height, edges) - 1
+            cells = [change[where == b].mean() for b in range(len(edges) - 1)]
+            print(f"| {label} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
+
+
+def landing(args) -> None:
+    simulator = gns.load_simulator(args.model).eval()
+    dataset = gns.data.open_dataset(args.data, args.split)
+    stride = simulator.frame_stride_for(dataset.metadata)
+    g, radius = probes.g_step(simulator), simulator.scene.radius
+    history = simulator.config.model.velocity_history + 1
+    chosen = args.trajectories if args.trajectories else range(len(dataset))
+    for index in chosen:
+        trajectory = at_frame_stride(dataset[index], stride)
+        truth = trajectory.positions.astype(np.float64)
+        free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
+        rolled = rollout(simulator, trajectory).predicted_trajectory.astype(np.float64)
+        one_step = np.full_like(truth, np.nan)
+        one_step[history:] = one_step_frames(simulator, trajectory, history)
+        r = probes.landing_timeline(
+            truth[:, free], rolled[:, free], one_step[:, free], radius, g, bands=args.bands
+        )
+        print(f"{args.model} on {args.split} trajectory {index}: ", end="")
+        if r["landing"] is None:
+            print("no landing (the lowest band never decelerates by 3 g)")
+            continue
+        print(f"landing at step {r['landing']} (lowest band first up by 3 g); bands low to high")
+        bands = range(args.bands)
+        heads = [f"a{b} truth / 1-step / rollout" for b in bands]
+        heads += [f"density{b} truth / rollout" for b in bands]
+        print("| step | " + " | ".join(heads) + " |")
+        print("|---" * (2 * args.bands + 1) + "|")
+        for row, t in enumerate(r["frames"]):
+            a = [
+                f"{r['truth'][row, b]:+.1f} / {r['one_step'][row, b]:+.1f} / "
+                f"{r['rollout'][row, b]:+.1f}"
+                for b in bands
+            ]
+            d = [
+                f"{r['density_truth'][row, b]:.1f} / {r['density_rollout'][row, b]:.1f}"
+                for b in bands
+            ]
+            print(f"| {t - r['landing']:+d} | " + " | ".join(a + d) + " |")
+
+
+@torch.no_grad()
+def one_step_frames(simulator, trajectory, history: int) -> np.ndarray:
+    """(T - history, N, D): each frame from t = history on, predicted from the truth's
+    frames before it."""
+    from gns.data.windows import window_keys
+    from gns.evaluate import one_step_predictions
+
+    pairs = list(window_keys([trajectory], history))
+    predictions = one_step_predictions(simulator, [trajectory], pairs)
+    return np.stack([following.double().numpy() for _, _, following, _ in predictions])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    probes_ = parser.add_subparsers(dest="probe", required=True)
+    for name, run in (("reach", reach), ("floor", floor)):
+        p = probes_.add_parser(name)
+        p.add_argument("models", nargs="+")
+        p.add_argument("--size", type=float, default=0.2)
+        p.add_argument("--spacing", type=float, default=1 / 128)
+        p.add_argument("--friction-angle", type=float, default=30.0)
+        p.set_defaults(run=run)
+    probes_.choices["reach"].add_argument("--untrained", action="store_true")
+    probes_.choices["reach"].add_argument("--max-hop", type=int, default=8)
+    probes_.choices["reach"].add_argument("--variant", action="append", default=[])
+    probes_.choices["floor"].add_argument("--shift", type=float, default=1.0)
+    probes_.choices["floor"].add_argument("--landing-speed", type=float, default=1.25)
+    probes_.choices["floor"].add_argument("--bin", type=float, default=3.0)
+    p = probes_.add_parser("landing")
+    p.add_argument("model")
+    p.add_argument("data")
+    p.add_argument("split")
+    p.add_argument("--trajectories", type=int, nargs="*")
+    p.add_argument("--bands", type=int, default=3)
+    p.set_defaults(run=landing)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    args.run(args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,214 @@
+"""gns.probes on hand-made cases whose answers are known without the probe: graph distances
+from scipy, the exact reach of a network of M message-passing steps, the floor seen no farther
+than the wall clip plus M hops, and a block whose landing is written by hand."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from gns import probes, radius_graph
+from gns.config import Config, ModelConfig
+from gns.mpm import lattice
+from gns.simulator import LearnedSimulator, Scene
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import shortest_path
+from scipy.spatial import cKDTree
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+RADIUS = 0.015
+SPACING = 1 / 128
+DT = 0.0075
+G = 9.81 * DT**2
+
+
+def untrained(steps: int, wall_clip: float = 1.0, seed: int = 0) -> LearnedSimulator:
+    """A GNS of `steps` message-passing steps with fresh weights in sand2d-taichi's box."""
+    scene = Scene(
+        dim=2,
+        radius=RADIUS,
+        particle_types=(6,),
+        bounds=((0.1, 0.9), (0.1, 0.9)),
+        walls=True,
+        wall_clip=wall_clip,
+        dt=DT,
+    )
+    model = ModelConfig(latent_size=16, mlp_hidden_size=16, message_passing_steps=steps)
+    torch.manual_seed(seed)
+    return LearnedSimulator(scene, Config(model=model)).eval()
+
+
+def test_hop_counts_are_scipys_shortest_paths_on_a_radius_graph():
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.random((299, 2)) * 0.12, [[0.5, 0.5]]])  # the last one alone
+    senders, receivers = radius_graph(x, RADIUS, self_edges=False)
+    targets = [0, 17, 299]
+    ours = probes.hop_counts(senders, receivers, len(x), targets)
+    # Messages run sender -> receiver: the hops to a target are paths from each particle to it.
+    graph = coo_matrix((np.ones(len(senders)), (senders, receivers)), shape=(len(x),) * 2)
+    to_target = shortest_path(graph.T, unweighted=True, indices=targets, directed=True)
+    expected = np.where(np.isinf(to_target), -1, to_target).astype(np.int64)
+    np.testing.assert_array_equal(ours, expected)
+    assert (ours > 3).any() and (ours == -1).any()
+
+
+def test_hop_counts_follow_the_direction_of_the_edges():
+    # A chain 0 -> 1 -> 2 -> 3: everything reaches 3, nothing reaches 0 but itself.
+    hops = probes.hop_counts(np.array([0, 1, 2]), np.array([1, 2, 3]), 4, [3, 0])
+    np.testing.assert_array_equal(hops, [[3, 2, 1, 0], [0, -1, -1, -1]])
+
+
+@pytest.mark.parametrize("steps", [1, 2, 3])
+def test_a_network_of_m_message_passing_steps_reaches_exactly_m_hops(steps):
+    simulator = untrained(steps)
+    block = lattice((0.4, 0.4), (0.1, 0.1), SPACING)
+    history = probes.block_history(block, 6, G)
+    targets = np.argsort(np.linalg.norm(block - block.mean(axis=0), axis=1))[:3]
+    reach = probes.reach_by_hop(simulator, history, 6, None, targets, max_hop=steps + 3)
+    assert reach["mean"][0] == reach["total"][0] == 1.0
+    assert (reach["total"][1 : steps + 1] > 1e-6).all(), reach
+    assert (reach["total"][steps + 1 :] == 0).all(), reach
+    # Every hop up to steps + 3 is populated in a 13 x 13 block around its centre.
+    assert (reach["pairs"] > 0).all()
+    # The mean over a hop's particles is its total over their count.
+    ratio = reach["total"] / reach["pairs"] * reach["pairs"][0]
+    np.testing.assert_allclose(reach["mean"], ratio, rtol=1e-9)
+
+
+def test_an_untrained_copy_keeps_the_normalisers_and_redraws_the_network():
+    simulator = untrained(2)
+    simulator.velocity_normalizer.update(torch.randn(50, 2))
+    fresh = probes.untrained_copy(simulator, seed=3)
+    for (name, ours), theirs in zip(
+        simulator.state_dict().items(), fresh.state_dict().values(), strict=True
+    ):
+        if name.startswith("model."):
+            if name.endswith("weight") and ours.dim() == 2:
+                assert not torch.equal(ours, theirs), name
+        else:
+            assert torch.equal(ours, theirs), name
+
+
+def test_an_untrained_variant_has_the_changed_setting_and_its_reach():
+    simulator = untrained(3)
+    variant = probes.untrained_copy(simulator, model={"message_passing_steps": 1})
+    assert variant.config.model.message_passing_steps == 1
+    block = lattice((0.4, 0.4), (0.06, 0.06), SPACING)
+    history = probes.block_history(block, 6, G)
+    reach = probes.reach_by_hop(variant, history, 6, None, [0], max_hop=3)
+    assert reach["total"][1] > 0 and (reach["total"][2:] == 0).all()
+    wider = probes.untrained_copy(simulator, scene={"radius": 2 * RADIUS})
+    assert wider.scene.radius == 2 * RADIUS
+
+
+@pytest.mark.parametrize(("steps", "wall_clip"), [(1, 2.0), (2, 3.0)])
+def test_the_floor_is_seen_no_higher_than_the_wall_clip_plus_m_hops(steps, wall_clip):
+    simulator = untrained(steps, wall_clip)
+    block = lattice((0.4, 0.1), (0.16, 0.16), SPACING)  # on the floor, y = 0.1
+    history = probes.block_history(block + [0.0, 0.5 * RADIUS], 6, G, -1.25 * DT)
+    scene = simulator.scene
+    change = probes.floor_shift(simulator, history, 6, None, shift=1.0)
+    assert simulator.scene is scene  # put back
+    height = (history[:, -1, 1] - 0.1) / RADIUS
+    # A particle sees its own wall distances up to the clip, and each message-passing step
+    # carries them at most one radius further.
+    assert (change[height > wall_clip + steps] == 0).all()
+    assert (change[height < wall_clip] > 0).all()
+    assert change.max() > 0.01
+
+
+def test_the_floor_probe_refuses_a_model_without_a_floor():
+    simulator = untrained(1)
+    simulator.scene = Scene(dim=2, radius=RADIUS, particle_types=(6,), dt=DT)
+    with pytest.raises(ValueError, match="wall features on the vertical axis"):
+        probes.floor_shift(simulator, np.zeros((4, 6, 2)), 6, None)
+
+
+def falling_block(frames: int, landing: int) -> np.ndarray:
+    """(frames, N, 2): a 16 x 16 lattice falling at g from rest that stops dead at frame
+    `landing` and stays there."""
+    block = lattice((0.4, 0.1), (0.125, 0.125), SPACING)
+    t = np.minimum(np.arange(frames), landing - 1)
+    drop = 0.5 * G * t * (t + 1)
+    return np.stack([block + [0.0, (landing - 1) * landing * G / 2 - d] for d in drop])
+
+
+def test_the_landing_timeline_of_a_block_that_stops_dead():
+    truth = falling_block(20, landing=12)
+    r = probes.landing_timeline(truth, truth, truth, RADIUS, G, bands=3, before=3, after=4)
+    assert r["landing"] == 12
+    np.testing.assert_array_equal(r["frames"], np.arange(9, 17))
+    # Before the landing every band falls at g; at it, each stops from the speed 11 g.
+    np.testing.assert_allclose(r["truth"][:3], -1.0, atol=1e-6)
+    np.testing.assert_allclose(r["truth"][3], 11.0, rtol=1e-6)
+    np.testing.assert_allclose(r["truth"][4:], 0.0, atol=1e-6)
+    # A model that reproduces the truth reads as the truth, one step and rollout alike.
+    np.testing.assert_allclose(r["one_step"], r["truth"], atol=1e-9)
+    np.testing.assert_allclose(r["rollout"], r["truth"], atol=1e-9)
+    # Density: neighbours within R of each particle (scipy), by thirds of the height.
+    tree = cKDTree(truth[12])
+    counts = np.array([len(n) - 1 for n in tree.query_ball_point(truth[12], RADIUS * (1 + 1e-9))])
+    order = np.argsort(truth[0][:, 1], kind="stable")
+    thirds = np.array_split(order, 3)
+    expected = [counts[third].mean() for third in thirds]
+    np.testing.assert_allclose(r["density_truth"][3], expected, rtol=1e-12)
+    np.testing.assert_allclose(r["density_rollout"], r["density_truth"], rtol=1e-12)
+
+
+def test_the_landing_timeline_tells_a_top_that_falls_through_from_one_that_stops():
+    truth = falling_block(20, landing=12)
+    rollout = truth.copy()
+    top = probes.height_bands(truth[0], 3) == 2
+    # The model's top third keeps falling at g after the landing: into the stopped base.
+    for t in range(12, 20):
+        rollout[t, top] = 2 * rollout[t - 1, top] - rollout[t - 2, top] - [0.0, G]
+    r = probes.landing_timeline(truth, rollout, truth, RADIUS, G)
+    at = list(r["frames"]).index(12)
+    assert r["rollout"][at, 2] == pytest.approx(-1.0, abs=1e-6)
+    assert r["rollout"][at, 0] == pytest.approx(11.0, rel=1e-6)
+    assert r["density_rollout"][at + 3, 2] > r["density_truth"][at + 3, 2]
+
+
+def test_a_trajectory_without_a_landing_says_so():
+    block = lattice((0.4, 0.4), (0.1, 0.1), SPACING)
+    still = np.repeat(block[None], 10, axis=0)
+    assert probes.landing_timeline(still, still, still, RADIUS, G)["landing"] is None
+
+
+def test_height_bands_split_the_particles_into_equal_thirds_by_height():
+    rng = np.random.default_rng(1)
+    frame = rng.random((99, 2))
+    band = probes.height_bands(frame, 3)
+    assert np.bincount(band).tolist() == [33, 33, 33]
+    assert frame[band == 0, 1].max() < frame[band == 1, 1].min()
+    assert frame[band == 1, 1].max() < frame[band == 2, 1].min()
+
+
+SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "probe.py"
+
+
+def run_probe(*args: str) -> list[str]:
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), *args], capture_output=True, text=True, check=True
+    )
+    return done.stdout.splitlines()
+
+
+def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
+    run, native, _ = strided
+    reach = run_probe(
+        "reach", str(run), "--untrained", "--variant", "model.layer_norm=false", "--max-hop", "4"
+    )
+    rows = [line for line in reach if line.startswith("| trained") or line.startswith("| untr")]
+    assert len(rows) == 6 and all(row.count("|") == 8 for row in rows), reach
+    assert rows[-1].startswith("| untrained, model.layer_norm=false | hop | 1 |"), reach
+    floor = run_probe("floor", str(run))
+    assert [line.split("|")[1].strip() for line in floor[3:]] == ["at rest", "landing"], floor
+    landing = run_probe("landing", str(run), str(native), "test", "--trajectories", "0")
+    assert re.match(rf"{re.escape(str(run))} on test trajectory 0: ", landing[0]), landing
