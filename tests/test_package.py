@@ -147,3 +147,36 @@ def test_the_cycle_check_sees_a_cycle(tmp_path):
     graph = module_imports(package)
     assert graph == {"gns": set(), "gns.a": {"gns.b"}, "gns.b": {"gns.a"}, "gns.c": {"gns.a"}}
     assert import_cycles(graph) == [["gns.a", "gns.b", "gns.a"]]
+
+
+def test_the_versions_ci_pins_are_inside_pyproject_ranges():
+    # pyproject.toml bounds the dependencies (so a user's torch stays); constraints.txt pins the
+    # versions CI installs. A pin outside its range would make `pip install -c` fail, and a
+    # range that no longer admits the tested version would promise what was not tested.
+    from packaging.requirements import Requirement
+
+    try:
+        import tomllib
+    except ImportError:  # Python 3.10
+        import tomli as tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    pins = {}
+    for line in (root / "constraints.txt").read_text().splitlines():
+        if line.split("#")[0].strip():
+            pin = Requirement(line.split("#")[0])
+            (spec,) = pin.specifier
+            assert spec.operator == "==", line
+            pins[pin.name] = spec.version
+    ranges = [
+        Requirement(r) for r in project["dependencies"] + project["optional-dependencies"]["test"]
+    ]
+    ranged = {r.name: r for r in ranges if r.marker is None}  # tomli: Python 3.10 only
+    # Every dependency of gns and of its tests is pinned, within its range.
+    assert set(ranged) <= set(pins), sorted(set(ranged) - set(pins))
+    for name, requirement in ranged.items():
+        assert requirement.specifier.contains(pins[name]), (name, pins[name])
+        # A lower bound, and no exact pin: the range must let an installed version stay.
+        assert any(s.operator == ">=" for s in requirement.specifier), requirement
+        assert not any(s.operator == "==" for s in requirement.specifier), requirement

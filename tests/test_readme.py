@@ -10,7 +10,7 @@ run trained for a few steps in place of a documented long `gns train`), so it is
 For ```bash blocks, which may name long jobs, every `gns SUBCOMMAND` (also `-m gns`) must
 exist in `gns --help`, every --flag it uses in that subcommand's --help, a value given to a
 flag with listed choices must be one of them, paths into configs/, scripts/ or benches/ must
-exist, and a `torch==VERSION` must be pyproject's pin.
+exist, and a `torch==VERSION` must be the version CI tests (constraints.txt's pin).
 """
 
 from __future__ import annotations
@@ -25,11 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib  # type: ignore[no-redef]
 
 REPO = Path(__file__).resolve().parents[1]
 DOCUMENTS = ["README.md", *sorted(f"docs/{p.name}" for p in (REPO / "docs").glob("*.md"))]
@@ -257,8 +252,9 @@ def check_gns(arguments: list[str]) -> list[str]:
 
 
 def torch_pin() -> str:
-    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text())
-    (pin,) = [d for d in pyproject["project"]["dependencies"] if d.startswith("torch")]
+    """constraints.txt's torch==VERSION: the one CI installs (pyproject.toml holds a range)."""
+    lines = (REPO / "constraints.txt").read_text().splitlines()
+    (pin,) = [line.split("#")[0].strip() for line in lines if line.startswith("torch==")]
     return pin
 
 
@@ -272,7 +268,7 @@ def check_command(command: list[str]) -> list[str]:
         if re.match(r"(configs|scripts|benches)/", path) and not (REPO / path).exists():
             problems.append(f"{path} does not exist in the repository")
         if token.startswith("torch==") and token != torch_pin():
-            problems.append(f"{token} is not pyproject's {torch_pin()}")
+            problems.append(f"{token} is not constraints.txt's {torch_pin()}")
     return problems
 
 
@@ -309,7 +305,9 @@ def test_bash_blocks_name_real_commands_and_flags(document):
             "gns train --config configs/missing.toml", "missing.toml does not exist", id="path"
         ),
         pytest.param(
-            "pip install torch==1.0.0 --index-url x", "torch==1.0.0 is not pyproject's", id="pin"
+            "pip install torch==1.0.0 --index-url x",
+            "torch==1.0.0 is not constraints.txt's",
+            id="pin",
         ),
     ],
 )
