@@ -68,9 +68,9 @@ __all__ = [
 ]
 
 OBSTACLE_TYPE = 3
-# DeepMind's id for rigid solids (learning_to_simulate/render_rollout.py: 0 "Rigid solids";
-# ../shared/design/formats.md): BOXBATH's box. It means nothing else in their data (3
-# kinematic, 5 water, 6 sand, 7 goop), and a dataset of ours with a box reads like theirs.
+# DeepMind's id for rigid solids (0 "Rigid solids" in learning_to_simulate/render_rollout.py of
+# github.com/google-deepmind/deepmind-research): BOXBATH's box. It means nothing else in their
+# data (3 kinematic, 5 water, 6 sand, 7 goop), and a dataset of ours with a box reads like theirs.
 RIGID_TYPE = 0
 
 
