@@ -16,8 +16,9 @@ context where the model takes one.
   model.FIELD=VALUE or scene.FIELD=VALUE (e.g. model.layer_norm=false, scene.radius=0.03) an
   untrained one with that setting changed.
 - floor: the block on the floor at rest (its lowest row half a spacing above it), and 0.5 R
-  higher falling at --landing-speed m/s (the moment before a landing); the mean change of the predicted acceleration, in g, when
-  the floor is moved --shift further down, by height above the floor in radii.
+  higher falling at --landing-speed m/s (the moment before a landing); the mean change of
+  the predicted acceleration, in g, when the floor is moved --shift further down, by height
+  above the floor in radii.
 - landing: each trajectory rolled out from its first frames and predicted one step at a time
   from the truth's; the mean vertical acceleration (g, up positive) and neighbour count of
   the lowest, middle and highest third of the particles (by height in the first frame)
@@ -35,7 +36,7 @@ import torch
 from gns import probes
 from gns.data import at_frame_stride
 from gns.mpm import lattice
-from gns.rollout import rollout
+from gns.rollout import RolloutDiverged, rollout
 
 
 def block_in(simulator, args, where: str) -> np.ndarray:
@@ -127,7 +128,14 @@ def landing(args) -> None:
         trajectory = at_frame_stride(dataset[index], stride)
         truth = trajectory.positions.astype(np.float64)
         free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
-        rolled = rollout(simulator, trajectory).predicted_trajectory.astype(np.float64)
+        rolled = np.full_like(truth, np.nan)
+        try:
+            done = rollout(simulator, trajectory)
+        except RolloutDiverged as err:  # keep the good steps; the rest stays NaN
+            print(f"({args.model} on trajectory {index}: {err})")
+            done = err.rollout
+        good = done.predicted_trajectory
+        rolled[: len(good)] = good
         one_step = np.full_like(truth, np.nan)
         one_step[history:] = one_step_frames(simulator, trajectory, history)
         r = probes.landing_timeline(
