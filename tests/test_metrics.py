@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 import pytest
+from data_helpers import SAND
+from gns import distances
 from gns.baselines import constant_velocity_rollout, static_rollout
 from gns.deposit import (
     deposit,
@@ -226,6 +228,62 @@ def test_exact_ot_between_gaussian_samples_is_the_squared_mean_difference():
     assert abs(w2 - squared_shift) < 5 * standard_error + s**2
     # Jensen: no coupling moves the mean for less than the squared mean difference.
     assert w2 >= float(np.sum((x.mean(0) - y.mean(0)) ** 2))
+
+
+def scipy_assignment_ot(x, y):
+    """The oracle: scipy's assignment on squared distances from a plain double loop over axes."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    cost = ((x[:, None, :] - y[None, :, :]) ** 2).sum(axis=-1)
+    rows, cols = linear_sum_assignment(cost)
+    return float(np.mean(cost[rows, cols]))
+
+
+@pytest.mark.parametrize("use_lapx", [True, False])
+@pytest.mark.parametrize(("n", "d"), [(2, 2), (30, 2), (200, 2), (656, 2), (40, 3), (300, 3)])
+def test_exact_ot_equals_scipys_assignment_on_random_clouds(n, d, use_lapx, monkeypatch):
+    """The preconditioned solver (gns.distances._assignment_cost) against scipy's assignment
+    on the plain squared distances: clouds overlapping, far apart, stretched, and one squeezed
+    flat (its covariance singular, so only the translation is taken out)."""
+    if not use_lapx:
+        monkeypatch.setattr(distances, "_lapjvh", None)
+    elif distances._lapjvh is None:
+        pytest.skip("lapx not installed")
+    rng = np.random.default_rng(1000 * n + d)
+    x = rng.random((n, d))
+    stretch = np.diag(np.linspace(3.0, 0.2, d))
+    flat = rng.random((n, d)) * np.r_[1.0, np.zeros(d - 1)]
+    for y in (
+        rng.random((n, d)),
+        rng.normal(2.0, 0.1, (n, d)),
+        (rng.random((n, d)) - 0.5) @ stretch + 0.3,
+        flat,
+        x[rng.permutation(n)] + 1e-7 * rng.normal(size=(n, d)),
+    ):
+        expected = scipy_assignment_ot(x, y)
+        assert exact_optimal_transport(x, y) == pytest.approx(expected, rel=1e-12, abs=1e-300)
+        assert exact_optimal_transport(y, x) == pytest.approx(expected, rel=1e-12, abs=1e-300)
+
+
+def test_exact_ot_equals_scipys_assignment_on_real_sand():
+    """Frames of sand2d-taichi (656 particles): a pile against its own later frames, against
+    another trajectory's (far apart, shaped differently) and against a slightly moved copy."""
+    if not (SAND / "manifest.json").is_file():
+        pytest.skip("shared/data/sand2d-taichi not present")
+    from gns.data import open_dataset
+
+    dataset = open_dataset(SAND, "test")
+    first, second = dataset[0].positions, dataset[1].positions
+    rng = np.random.default_rng(9)
+    pairs = [
+        (first[0], first[60]),
+        (first[30], first[-1]),
+        (first[-1], second[-1]),
+        (first[100], second[200]),
+        (first[200], first[200] + 1e-5 * rng.normal(size=first[200].shape)),
+    ]
+    for x, y in pairs:
+        expected = scipy_assignment_ot(x, y)
+        assert exact_optimal_transport(x, y) == pytest.approx(expected, rel=1e-12)
 
 
 def test_exact_ot_refuses_problems_beyond_exact_max_points():

@@ -9,11 +9,17 @@ here), compute in float64 and return Python floats.
 Optimal transport is the squared 2-Wasserstein distance W2^2 between the uniform distributions
 on the two point sets, in squared position units (the same units as the MSE):
 
-- exact: with N == M an assignment problem (`scipy.optimize.linear_sum_assignment` on squared
-  distances; W2^2 is the mean matched cost). With N != M the uniform weights 1/N and 1/M are
-  integer multiples of 1/L for L = lcm(N, M); an optimal transportation plan with integer
-  supplies has integer entries, so repeating every point of x L/N times and of y L/M times turns
-  the problem into an exact L x L assignment (no LP solver). `exact_max_points` bounds L.
+- exact: with N == M an assignment problem on squared distances; W2^2 is the mean matched cost.
+  With N != M the uniform weights 1/N and 1/M are integer multiples of 1/L for L = lcm(N, M);
+  an optimal transportation plan with integer supplies has integer entries, so repeating every
+  point of x L/N times and of y L/M times turns the problem into an exact L x L assignment (no
+  LP solver). `exact_max_points` bounds L. The assignment is solved by lapx's Jonker-Volgenant
+  solver (`lap.lapjvh`, float64; scipy's `linear_sum_assignment` where lapx is not installed)
+  on a preconditioned cost with the same optimal assignments (`_assignment_cost`): the
+  Gaussian (affine) optimal map between the two clouds is taken out first, which leaves the
+  solver far fewer conflicts to resolve between two clouds far apart. W2^2 is then the mean of
+  the original squared distances over the assignment found, so it equals the plain
+  assignment's to float round-off.
 - sinkhorn: log-domain entropic OT (Cuturi 2013) with epsilon annealing and overrelaxation,
   returning the transport cost <P, C> of the entropic plan (rounded to an exact coupling), not
   the regularised objective. `epsilon` is relative to the mean pairwise cost
@@ -38,13 +44,14 @@ U-statistic (no diagonals), unbiased but possibly negative.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
+from scipy.spatial.distance import cdist  # type: ignore[import-untyped]
 
 from gns.metric_inputs import FloatArray, point_pair
 
@@ -65,13 +72,28 @@ __all__ = [
 OtMethod = Literal["auto", "exact", "sinkhorn"]
 # The largest assignment "auto" solves exactly: 8 L^2 bytes (134 MB) for its cost matrix. Exact
 # took 0.72 s on 2290 3D points where Sinkhorn took 58 s (a sand-3d demo frame), and 4.1 s at
-# 4096 (2026-11-25, Zen 4, the other core busy).
+# 4096 (2026-11-25, Zen 4, the other core busy; scipy's solver, before the preconditioned
+# lapx one, which took 5 times less on sand2d-taichi's frames: docs/performance.md).
 EXACT_MAX_POINTS = 4096
 OT_METHODS: tuple[OtMethod, ...] = get_args(OtMethod)
 # Row-sum error to which Sinkhorn solves the annealing stages before the last one.
 _STAGE_TOLERANCE = 1e-2
 # Bytes of float64 scratch per block of pairwise work (distances, kernels, Sinkhorn blocks).
 DEFAULT_MEMORY_BYTES = 64 * 2**20
+
+
+def _find_lapjvh() -> Callable[..., Any] | None:
+    """lapx's lapjvh, the fast exact assignment solver; None where the module `lap` is missing
+    or is the older `lap` package, which installs the same module without lapjvh."""
+    try:
+        import lap
+    except ImportError:
+        return None
+    found: Callable[..., Any] | None = getattr(lap, "lapjvh", None)
+    return found
+
+
+_lapjvh = _find_lapjvh()
 
 
 class SinkhornConvergenceError(RuntimeError):
@@ -106,7 +128,12 @@ def _squared_distances(
 ) -> FloatArray:
     """|a_i - b_j|^2, (n, m), from coordinate differences: exact zeros for equal points and no
     cancellation (|a|^2 + |b|^2 - 2 a.b loses everything when points are close and far from 0).
-    With a `period` (gns.periodic), the minimum image on its periodic axes: the torus."""
+    With a `period` (gns.periodic), the minimum image on its periodic axes: the torus.
+    Without one, scipy's cdist: the same sum of squared coordinate differences, a few times
+    faster than the loop below."""
+    if period is None or not np.any(np.asarray(period) > 0):
+        out: FloatArray = cdist(a, b, "sqeuclidean")
+        return out
     out = np.zeros((a.shape[0], b.shape[0]))
     for d in range(a.shape[1]):
         diff = a[:, d, None] - b[None, :, d]
@@ -145,7 +172,9 @@ def exact_optimal_transport(
 
     Solves an L x L assignment, L = N if N == M else lcm(N, M) (points repeated L/N and L/M
     times); raises ValueError when L > exact_max_points, since the cost matrix takes 8 L^2 bytes
-    and the solver O(L^3) time.
+    and the solver O(L^3) time. The assignment is lapx's `lapjvh` (scipy's
+    `linear_sum_assignment` without lapx) on the preconditioned cost of `_assignment_cost`;
+    the value is the mean squared distance over it, scipy's own to float round-off.
     """
     xs, ys = point_pair(x, y)
     n, m = xs.shape[0], ys.shape[0]
@@ -158,8 +187,64 @@ def exact_optimal_transport(
         )
     if n != m:
         xs, ys = np.repeat(xs, size // n, axis=0), np.repeat(ys, size // m, axis=0)
-    cost = _squared_distances(xs, ys, period)
+    return _assignment_cost(xs, ys, period)
+
+
+def _solve_assignment(cost: FloatArray) -> tuple[np.ndarray, np.ndarray]:
+    """An optimal assignment (rows, cols) of the square cost matrix: lapx's Jonker-Volgenant
+    solver in float64 (several times faster than scipy's on clouds of sand), else scipy's."""
+    if _lapjvh is not None:
+        rows, cols = _lapjvh(cost, return_cost=False, precision="float64")
+        return np.asarray(rows), np.asarray(cols)
     rows, cols = linear_sum_assignment(cost)
+    return rows, cols
+
+
+def _gaussian_map_factor(x: FloatArray, y: FloatArray) -> FloatArray | None:
+    """S = A^(1/2) for the optimal affine map x -> mean(y) + A (x - mean(x)) between Gaussians
+    of the clouds' means and covariances (A = Sx^-1/2 (Sx^1/2 Sy Sx^1/2)^1/2 Sx^-1/2, symmetric
+    positive definite), or None where a covariance is (nearly) singular."""
+
+    def symmetric_power(m: FloatArray, power: float) -> tuple[FloatArray, FloatArray]:
+        w, v = np.linalg.eigh(m)
+        return (v * w**power) @ v.T, w
+
+    sx = np.cov(x, rowvar=False, bias=True).reshape(x.shape[1], x.shape[1])
+    sy = np.cov(y, rowvar=False, bias=True).reshape(y.shape[1], y.shape[1])
+    for w in (np.linalg.eigvalsh(sx), np.linalg.eigvalsh(sy)):
+        if not np.all(np.isfinite(w)) or w.min() <= 1e-9 * max(w.max(), 0.0):
+            return None
+    root, _ = symmetric_power(sx, 0.5)
+    inverse_root, _ = symmetric_power(sx, -0.5)
+    middle, _ = symmetric_power(root @ sy @ root, 0.5)
+    a = inverse_root @ middle @ inverse_root
+    factor, w = symmetric_power(0.5 * (a + a.T), 0.5)
+    if not np.all(np.isfinite(factor)) or w.min() <= 1e-9 * w.max():
+        return None
+    return factor
+
+
+def _assignment_cost(xs: FloatArray, ys: FloatArray, period: FloatArray | None) -> float:
+    """Mean |x_i - y_sigma(i)|^2 over an optimal assignment sigma of equally many points.
+
+    The solver gets a preconditioned cost with the same optimal assignments: with the
+    Gaussian map's A (`_gaussian_map_factor`, S = A^1/2) and centred points, p_i = S (x_i -
+    mean x) and q_j = S^-1 (y_j - mean y), |p_i - q_j|^2 equals |x_i - y_j|^2 plus a term of
+    row i plus a term of column j (expand both), which adds the same constant to every
+    assignment's total. It is small where the affine map is right, so most rows find their
+    column at once. The figure itself is the mean of the original squared distances over the
+    assignment found. On a torus (`period`) the squared distances are solved as they are.
+    """
+    cost = _squared_distances(xs, ys, period)
+    solved = cost
+    if period is None or not np.any(np.asarray(period) > 0):
+        xc, yc = xs - xs.mean(axis=0), ys - ys.mean(axis=0)
+        factor = _gaussian_map_factor(xc, yc) if xs.shape[0] > 1 else None
+        if factor is None:  # the translation alone: the mean difference taken out
+            solved = _squared_distances(xc, yc)
+        else:
+            solved = _squared_distances(xc @ factor, yc @ np.linalg.inv(factor))
+    rows, cols = _solve_assignment(solved)
     return float(np.mean(cost[rows, cols]))
 
 
