@@ -44,6 +44,20 @@ def untrained(steps: int, wall_clip: float = 1.0, seed: int = 0) -> LearnedSimul
     return LearnedSimulator(scene, Config(model=model)).eval()
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_block_history_falls_at_g_along_y_with_the_last_velocity_asked(dim):
+    block = lattice((0.4,) * dim, (0.05,) * dim, SPACING)
+    history = probes.block_history(block, 6, G, last_velocity=-0.3 * G)
+    assert history.shape == (len(block), 6, dim)
+    acceleration = history[:, 2:] - 2 * history[:, 1:-1] + history[:, :-2]
+    np.testing.assert_allclose(acceleration[..., 1], -G, rtol=1e-9)
+    np.testing.assert_allclose(np.delete(acceleration, 1, axis=-1), 0.0, atol=1e-15)
+    np.testing.assert_allclose(
+        history[:, -1] - history[:, -2], [[0, -0.3 * G, 0][:dim]] * len(block)
+    )
+    np.testing.assert_array_equal(history[:, -1], block)
+
+
 def test_hop_counts_are_scipys_shortest_paths_on_a_radius_graph():
     rng = np.random.default_rng(0)
     x = np.concatenate([rng.random((299, 2)) * 0.12, [[0.5, 0.5]]])  # the last one alone

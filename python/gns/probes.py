@@ -48,13 +48,15 @@ __all__ = [
 def block_history(
     block: np.ndarray, frames: int, g_step: float, last_velocity: float = 0.0
 ) -> np.ndarray:
-    """(N, frames, 2) positions of `block` (N, 2) in free fall, at `block` in the last frame:
+    """(N, frames, D) positions of `block` (N, D) in free fall, at `block` in the last frame:
     y_k = y + u k - g k (k + 1) / 2 for k = -(frames - 1) ... 0, so every step's acceleration
     is -g and the last step's velocity (y_0 - y_-1) is u = `last_velocity` (per step; 0: the
     top of a throw upwards)."""
     k = np.arange(-(frames - 1), 1)
     rise = last_velocity * k - 0.5 * g_step * k * (k + 1)
-    return np.stack([block + [0.0, d] for d in rise], axis=1)
+    up = np.zeros(block.shape[1])
+    up[1] = 1.0  # y is up, in 2D and 3D alike
+    return np.stack([block + d * up for d in rise], axis=1)
 
 
 def probe_inputs(
