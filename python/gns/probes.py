@@ -27,13 +27,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-GRAVITY = 9.81  # m/s^2, along -y (the last axis but one in 3D is not handled: 2D scenes)
+from gns.simulator import LearnedSimulator
+
+GRAVITY = 9.81  # m/s^2, along -y
 
 __all__ = [
     "GRAVITY",
     "block_history",
     "fall_in_g",
     "floor_shift",
+    "g_step",
     "height_bands",
     "hop_counts",
     "landing_frame",
@@ -91,7 +94,7 @@ def g_step(simulator: Any) -> float:
 def _accelerations(
     simulator: Any, history: np.ndarray, particle_type: int, context: Tensor | None
 ) -> np.ndarray:
-    """(N, 2) predicted accelerations, float64, of one step from `history` (N, C + 1, 2): the
+    """(N, D) predicted accelerations, float64, of one step from `history` (N, C + 1, D): the
     prediction's second difference with the history as the model sees it (float32)."""
     given = torch.tensor(history, dtype=torch.float32)
     with torch.no_grad():
@@ -163,7 +166,7 @@ def reach_by_hop(
         nodes, f["edge_features"], f["senders"], f["receivers"], f["global_features"], None
     )
     hops = hop_counts(f["senders"].numpy(), f["receivers"].numpy(), len(history), targets)
-    mean, total, pairs = (np.zeros(max_hop + 1) for _ in range(3))
+    total, pairs = np.zeros(max_hop + 1), np.zeros(max_hop + 1)
     for row, target in enumerate(targets):
         squared = torch.zeros(len(history), dtype=torch.float64)
         for d in range(output.shape[1]):
@@ -188,8 +191,6 @@ def untrained_copy(
     seeded), or with the ModelConfig fields in `model` and the Scene fields in `scene`
     changed: what a design sees before training. The normalisers are the simulator's, so the
     inputs are scaled as the trained model's are."""
-    from gns.simulator import LearnedSimulator
-
     config = simulator.config
     config = dataclasses.replace(config, model=dataclasses.replace(config.model, **(model or {})))
     torch.manual_seed(seed)
