@@ -49,3 +49,17 @@ def test_step_benchmark_runs_the_bf16_variant_on_request(tmp_path):
     assert [r.split()[2:4] for r in rows] == [["fast", "fp32"], ["fast", "bf16"]]
     assert all(r.split()[9] == "-" for r in rows)  # no plain row, no ratio
     assert "bf16 matmul" in result.stdout
+
+
+def test_step_benchmark_says_why_bf16_was_not_run(tmp_path):
+    # Left out by --variants, it is not "not native" (issue 40: the H100 was told it was).
+    result = subprocess.run(
+        [sys.executable, str(BENCH), "--quick", "--threads", "1", "--reps", "1"]
+        + ["--sizes", "40", "--sand", "", "--variants", "fast"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "fast bf16: not run (--variants fast leaves it out)" in result.stdout
+    assert "not native" not in result.stdout
