@@ -22,7 +22,7 @@ context where the model takes one.
 - landing: each trajectory rolled out from its first frames and predicted one step at a time
   from the truth's; the mean vertical acceleration (g, up positive) and neighbour count of
   the lowest, middle and highest third of the particles (by height in the first frame)
-  around the landing, the first frame at which the lowest third decelerates by 3 g.
+  around the landing (the first frame at which the lowest third decelerates by 3 g).
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def floor(args) -> None:
         scene, frames = simulator.scene, simulator.config.model.velocity_history + 1
         g = probes.g_step(simulator)
         block = block_in(simulator, args, "floor")
-        floor_y = scene.bounds[-1][0]
+        floor_y = scene.bounds[1][0]
         rest = np.repeat(block[:, None], frames, axis=1)
         speed = args.landing_speed * scene.dt
         falling = probes.block_history(block + [0.0, 0.5 * scene.radius], frames, g, -speed)
@@ -201,7 +201,10 @@ def main() -> None:
     p.set_defaults(run=landing)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    args.run(args)
+    try:
+        args.run(args)
+    except ValueError as err:  # a model or data the probe cannot take: say why, no traceback
+        raise SystemExit(f"probe.py {args.probe}: {err}") from err
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+import gns.ops as ops
 from gns.simulator import LearnedSimulator
 
 GRAVITY = 9.81  # m/s^2, along -y
@@ -213,14 +214,14 @@ def floor_shift(
     shift: float = 1.0,
 ) -> np.ndarray:
     """(N,) how much each particle's predicted acceleration changes, in g (the 2-norm of the
-    change), when the floor (the lower bound of the last axis) is moved `shift` further down:
-    all that a particle learns of the floor, directly or through its neighbours."""
+    change), when the floor (the lower bound of y, axis 1) is moved `shift` further down: all
+    that a particle learns of the floor, directly or through its neighbours."""
     scene = simulator.scene
-    if scene.bounds is None or (scene.dim - 1) not in scene.wall_axes:
+    if scene.bounds is None or 1 not in scene.wall_axes:
         raise ValueError("the floor probe needs a model with wall features on the vertical axis")
     before = _accelerations(simulator, history, particle_type, context)
     bounds = [list(pair) for pair in scene.bounds]
-    bounds[-1][0] -= shift
+    bounds[1][0] -= shift
     simulator.scene = dataclasses.replace(scene, bounds=tuple(map(tuple, bounds)))
     try:
         after = _accelerations(simulator, history, particle_type, context)
@@ -242,9 +243,7 @@ def height_bands(first_frame: np.ndarray, bands: int) -> np.ndarray:
 
 def neighbour_counts(frame: np.ndarray, radius: float) -> np.ndarray:
     """(N,) how many other particles are within `radius` of each (Rust radius graph)."""
-    from gns import radius_graph
-
-    edges = radius_graph(np.asarray(frame, dtype=np.float64), radius, self_edges=False)
+    edges = ops.radius_graph(np.asarray(frame, dtype=np.float64), radius, self_edges=False)
     return np.bincount(edges[1], minlength=len(frame)).astype(np.float64)
 
 
