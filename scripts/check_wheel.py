@@ -68,15 +68,14 @@ print(f"  radius_graph: {edges.shape[1]} edges, as brute force finds them")
 # The shipped model: a block of sand at rest on the floor, 6 frames given, 5 predicted.
 import torch
 from gns.data import Trajectory
+from gns.mpm import lattice
 from gns.rollout import rollout
 
 torch.set_num_threads(1)
 simulator = gns.load_simulator("sand2d-taichi")
 spacing, side, steps = 1 / 128, 12, 5
-(x_lo, x_hi), (floor, _) = simulator.scene.bounds
-grid = np.arange(side) * spacing
-block = np.stack(np.meshgrid(0.5 + grid, floor + spacing / 2 + grid, indexing="ij"), -1)
-block = block.reshape(-1, 2)
+floor = simulator.scene.bounds[1][0]
+block = lattice((0.5, floor), (side * spacing, side * spacing), spacing)  # lowest row at s/2
 frames = simulator.config.model.velocity_history + 1 + steps
 positions = np.repeat(block[None], frames, axis=0)
 context = np.full((frames, 1), np.tan(np.radians(30.0)))  # sand2d-taichi's friction context

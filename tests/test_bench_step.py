@@ -9,15 +9,19 @@ from pathlib import Path
 BENCH = Path(__file__).resolve().parents[1] / "benches" / "step.py"
 
 
-def test_step_benchmark_quick_prints_its_table(tmp_path):
-    missing = tmp_path / "no-sand-here"
-    result = subprocess.run(
-        [sys.executable, str(BENCH), "--quick", "--threads", "1", "--reps", "1"]
-        + ["--sizes", "120", "--sand", str(missing)],
+def run_bench(*args: str) -> subprocess.CompletedProcess[str]:
+    """benches/step.py --quick on one thread, one repeat, with `args`."""
+    return subprocess.run(
+        [sys.executable, str(BENCH), "--quick", "--threads", "1", "--reps", "1", *args],
         capture_output=True,
         text=True,
         timeout=300,
     )
+
+
+def test_step_benchmark_quick_prints_its_table(tmp_path):
+    missing = tmp_path / "no-sand-here"
+    result = run_bench("--sizes", "120", "--sand", str(missing))
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert "torch threads" in out and "fp32 matmul" in out
@@ -37,13 +41,7 @@ def test_step_benchmark_quick_prints_its_table(tmp_path):
 
 
 def test_step_benchmark_runs_the_bf16_variant_on_request(tmp_path):
-    result = subprocess.run(
-        [sys.executable, str(BENCH), "--quick", "--threads", "1", "--reps", "1"]
-        + ["--sizes", "40", "--sand", "", "--variants", "fast", "bf16"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    result = run_bench("--sizes", "40", "--sand", "", "--variants", "fast", "bf16")
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("40 particles")]
     assert [r.split()[2:4] for r in rows] == [["fast", "fp32"], ["fast", "bf16"]]
@@ -53,13 +51,7 @@ def test_step_benchmark_runs_the_bf16_variant_on_request(tmp_path):
 
 def test_step_benchmark_says_why_bf16_was_not_run(tmp_path):
     # Left out by --variants, it is not "not native" (issue 40: the H100 was told it was).
-    result = subprocess.run(
-        [sys.executable, str(BENCH), "--quick", "--threads", "1", "--reps", "1"]
-        + ["--sizes", "40", "--sand", "", "--variants", "fast"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    result = run_bench("--sizes", "40", "--sand", "", "--variants", "fast")
     assert result.returncode == 0, result.stderr
     assert "fast bf16: not run (--variants fast leaves it out)" in result.stdout
     assert "not native" not in result.stdout
