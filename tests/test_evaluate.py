@@ -4,6 +4,7 @@ data whose frames are finer than the model's step too."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -11,21 +12,24 @@ import numpy as np
 import pytest
 import torch
 from data_helpers import SAND
+from gns.batches import batch_tensors
 from gns.cli import main
 from gns.config import Config, ModelConfig
 from gns.data.trajectory import Trajectory
+from gns.data.windows import collate, trajectory_windows, window_keys
 from gns.deposit import front_positions, runout_extent
 from gns.evaluate import (
     evaluate_rollouts,
     mean_neighbours,
     one_step_errors,
+    one_step_predictions,
     outside_box,
     rest_summary,
     rest_test,
 )
 from gns.rollout import Rollout, load_rollout, save_rollout
 from gns.simulator import LearnedSimulator, Scene
-from test_train import make_dataset
+from test_train import damped_motion, make_dataset
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -61,6 +65,50 @@ def test_one_step_errors_of_a_zero_acceleration_model_equal_the_baseline(tmp_pat
     assert errors["constant_velocity"] == pytest.approx(total / count, rel=1e-6)
     assert errors["static"] == pytest.approx(held / count, rel=1e-6)
     assert errors["model"] == pytest.approx(errors["constant_velocity"], rel=1e-5)
+
+
+def several_clouds(sizes: tuple[int, ...], frames: int = 10) -> list[Trajectory]:
+    """Damped motion of clouds of different sizes, each with a context that changes frame by
+    frame (so that a window's own context must reach its own graph)."""
+    rng = np.random.default_rng(1)
+    out = []
+    for key, n in enumerate(sizes):
+        t = damped_motion(rng, frames, n, key)
+        context = rng.uniform(0.0, 1.0, size=(frames, 1)).astype(np.float32)
+        out.append(Trajectory(t.positions, t.particle_type, context, key=key))
+    return out
+
+
+@pytest.mark.parametrize("global_latent", [False, True])
+def test_one_step_predictions_packed_together_equal_those_of_each_window_alone(global_latent):
+    # One window at a time, as one_step_predictions ran before it packed windows: the oracle.
+    scene = Scene(dim=2, radius=0.08, particle_types=(3, 5), bounds=((0.1, 0.9),) * 2,
+                  walls=True, context_size=1)  # fmt: skip
+    torch.manual_seed(0)
+    model = dataclasses.replace(TINY.model, global_latent=global_latent)
+    simulator = LearnedSimulator(scene, dataclasses.replace(TINY, model=model)).eval()
+    trajectories = several_clouds((24, 40, 17))
+    pairs = window_keys(trajectories, 6)
+    # A budget of 64 particles packs 1 to 3 windows a batch, of mixed sizes.
+    packed = list(one_step_predictions(simulator, trajectories, pairs, max_particles=64))
+    assert len(packed) == len(pairs)
+    errors = []
+    for (k, start), (sequence, truth, predicted, free) in zip(pairs, packed, strict=True):
+        batch = collate([next(trajectory_windows(trajectories[k], 6, [start]))])
+        t = batch_tensors(batch, torch.device("cpu"))
+        with torch.no_grad():
+            alone = simulator.predict_positions(
+                t["position_sequence"], t["particle_type"], t["n_node"], t["context"]
+            )
+        assert torch.equal(sequence, t["position_sequence"])
+        assert torch.equal(truth, t["next_position"])
+        assert torch.equal(free, torch.from_numpy(trajectories[k].particle_type != 3))
+        torch.testing.assert_close(predicted, alone, rtol=1e-6, atol=1e-7)
+        assert not torch.equal(alone, truth)
+        errors.append(float((alone.double() - truth.double())[free].square().mean()))
+    # one_step_errors packs every window into one batch here: the mean of the windows' own.
+    mean = one_step_errors(simulator, trajectories)["model"]
+    assert mean == pytest.approx(np.mean(errors), rel=1e-5)
 
 
 def synthetic_rollout(predicted_offset: float = 0.0, diverged_at: int | None = None) -> Rollout:

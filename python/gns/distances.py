@@ -54,6 +54,7 @@ from scipy.optimize import linear_sum_assignment  # type: ignore[import-untyped]
 from scipy.spatial.distance import cdist  # type: ignore[import-untyped]
 
 from gns.metric_inputs import FloatArray, point_pair
+from gns.periodic import minimum_image
 
 __all__ = [
     "DEFAULT_MEMORY_BYTES",
@@ -235,9 +236,9 @@ def _assignment_cost(xs: FloatArray, ys: FloatArray, period: FloatArray | None) 
     column at once. The figure itself is the mean of the original squared distances over the
     assignment found. On a torus (`period`) the squared distances are solved as they are.
     """
-    cost = _squared_distances(xs, ys, period)
-    solved = cost
-    if period is None or not np.any(np.asarray(period) > 0):
+    if period is not None and np.any(np.asarray(period) > 0):
+        solved = _squared_distances(xs, ys, period)
+    else:
         xc, yc = xs - xs.mean(axis=0), ys - ys.mean(axis=0)
         factor = _gaussian_map_factor(xc, yc) if xs.shape[0] > 1 else None
         if factor is None:  # the translation alone: the mean difference taken out
@@ -245,7 +246,10 @@ def _assignment_cost(xs: FloatArray, ys: FloatArray, period: FloatArray | None) 
         else:
             solved = _squared_distances(xc @ factor, yc @ np.linalg.inv(factor))
     rows, cols = _solve_assignment(solved)
-    return float(np.mean(cost[rows, cols]))
+    # Only the L matched distances, not the whole L x L matrix of original costs (which took
+    # a tenth of the time of gns eval's OT on sand2d-taichi, beside the solver).
+    matched = minimum_image(xs[rows] - ys[cols], None if period is None else np.asarray(period))
+    return float(np.mean(np.sum(matched * matched, axis=1)))
 
 
 def _mean_cost(x: FloatArray, y: FloatArray) -> float:

@@ -29,7 +29,7 @@ from torch import Tensor
 from gns.baselines import constant_velocity_rollout, static_rollout
 from gns.batches import batch_obstacles, batch_tensors
 from gns.data.trajectory import Trajectory
-from gns.data.windows import collate, trajectory_windows, window_keys
+from gns.data.windows import pack_batches, trajectory_windows, window_keys
 from gns.deposit import (
     DEPOSIT_CURVES,
     DEPOSIT_FIGURES,
@@ -63,22 +63,42 @@ MODELS = ("model", "constant_velocity", "static")
 CURVES = ("mse", *DEPOSIT_CURVES)
 
 
+# Particles per forward pass of one_step_predictions, by device: windows are packed into one
+# disjoint graph up to this many. A GPU runs one sand2d-taichi window (656 particles) in a few
+# dozen kernel launches' time, so it takes many at once. A CPU is compute-bound already at one
+# window (fp32 matmuls, LayerNorm, gathers: 50 ms of a 2-core Xeon's core, of which the Python
+# and dispatch overhead is a few percent), and at 16k particles it ran ~20% slower per window,
+# its node tables no longer in L2: there a few windows a pass.
+ONE_STEP_PARTICLES = {"cpu": 2**11, "cuda": 2**16}
+
+
 @torch.no_grad()
 def one_step_predictions(
     simulator: LearnedSimulator,
     trajectories: Sequence[Any],
     pairs: Sequence[tuple[int, int]],
     device: torch.device | str = "cpu",
+    *,
+    max_particles: int | None = None,
 ) -> Iterator[tuple[Tensor, Tensor, Tensor, Tensor]]:
-    """For each (trajectory index, start) of `pairs` (gns.data.windows.window_keys): the input
-    sequence (N, C + 1, D), the true next frame (N, D), the model's next frame (N, D) from
-    those ground-truth inputs, and which particles are free, not kinematic (N,) bool. The
-    simulator's mode is the caller's (eval for a prediction)."""
+    """For each (trajectory index, start) of `pairs` (gns.data.windows.window_keys), in order:
+    the input sequence (N, C + 1, D), the true next frame (N, D), the model's next frame (N, D)
+    from those ground-truth inputs, and which particles are free, not kinematic (N,) bool. The
+    simulator's mode is the caller's (eval for a prediction).
+
+    The windows are stepped together, packed in order into batches of up to `max_particles`
+    particles (default: the device's ONE_STEP_PARTICLES; gns.data.windows.pack_batches; the
+    budget is raised to the largest window's size): a batch is one disjoint graph, so each
+    window's prediction is the one it gets alone, to the float32 round-off of matmuls over
+    more rows.
+    """
     history = simulator.config.model.velocity_history + 1
     device = torch.device(device)
-    for k, start in pairs:
-        window = next(trajectory_windows(trajectories[k], history, [start]))
-        batch = collate([window])
+    if max_particles is None:
+        max_particles = ONE_STEP_PARTICLES.get(device.type, ONE_STEP_PARTICLES["cuda"])
+    windows = (next(trajectory_windows(trajectories[k], history, [start])) for k, start in pairs)
+    largest = max((trajectories[k].n_particles for k, _ in pairs), default=1)
+    for batch in pack_batches(windows, max(max_particles, largest)):
         t = batch_tensors(batch, device)
         sequence, truth = t["position_sequence"], t["next_position"]
         assert sequence is not None and truth is not None and t["particle_type"] is not None
@@ -90,7 +110,10 @@ def one_step_predictions(
             t["material_property"],
             obstacles=batch_obstacles(batch),
         )
-        yield sequence, truth, predicted, ~simulator.kinematic_mask(t["particle_type"])
+        free = ~simulator.kinematic_mask(t["particle_type"])
+        counts = batch.n_node.tolist()
+        parts = (torch.split(x, counts) for x in (sequence, truth, predicted, free))
+        yield from zip(*parts, strict=True)
 
 
 @torch.no_grad()
