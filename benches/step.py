@@ -88,7 +88,6 @@ from gns.config import Config  # noqa: E402
 from gns.data import Trajectory, open_dataset  # noqa: E402
 from gns.data.windows import collate, trajectory_windows  # noqa: E402
 from gns.device import resolve_device  # noqa: E402
-from gns.machine import cpu_name  # noqa: E402
 from gns.model import EncodeProcessDecode, native_bf16  # noqa: E402
 from gns.rollout import TIMING_PARTS, rollout  # noqa: E402
 from gns.simulator import LearnedSimulator, Scene  # noqa: E402
@@ -96,6 +95,7 @@ from gns.train import TrainingStep, batch_tensors  # noqa: E402
 from lattice import lattice  # noqa: E402
 from torch import nn  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
+from torch_bench import machine_facts, synchronize  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -173,11 +173,6 @@ def forward_flops(model: EncodeProcessDecode, n_nodes: int, n_edges: int, n_grap
             rows = n_edges if "edge_" in name else n_graphs if "global_" in name else n_nodes
             total += 2 * module.in_features * module.out_features * rows
     return total
-
-
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
 
 
 def timed(fn: Callable[[], object], warmup: int, reps: int, device: torch.device) -> np.ndarray:
@@ -318,17 +313,6 @@ def cells(case: Case, variant: Variant, r: dict, peak: float, plain: dict | None
         *[f"{forward / 1e9:.1f}", f"{100 * forward / peak:.0f}%"],
         *[f"{training / 1e9:.1f}", f"{100 * training / peak:.0f}%"],
     ]
-
-
-def machine_facts(device: torch.device) -> list[str]:
-    facts = [
-        f"cpu: {cpu_name()} ({os.cpu_count()} logical cores)",
-        f"torch {torch.__version__}, {torch.get_num_threads()} torch threads, "
-        f"Rust threads: {os.environ.get('RAYON_NUM_THREADS', 'all cores')}, device {device}",
-    ]
-    if device.type == "cuda":
-        facts.append(f"gpu: {torch.cuda.get_device_name(device)}")
-    return facts
 
 
 def main() -> None:
