@@ -142,17 +142,21 @@ class InteractionNetwork(nn.Module):
         node_graph: Tensor | None = None,
         *,
         implementation: Implementation = "fast",
+        edge_mask: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """nodes (N, L), edges (E, L), senders / receivers (E,) int64; with a global latent also
         globals_ (G, L) and node_graph (N,) the graph of each node. Returns the new latents.
-        implementation: "fast" or "plain" (the same function, see the class)."""
+        implementation: "fast" or "plain" (the same function, see the class). edge_mask (E,):
+        1 for an edge, 0 for a padding edge, whose message is zeroed before it reaches any node
+        or global sum (see EncodeProcessDecode.forward)."""
         if globals_ is not None and node_graph is None:
             raise ValueError("a global latent needs node_graph")
+        args = (nodes, edges, senders, receivers, globals_, node_graph, edge_mask)
         if implementation == "fast":
-            return self._fast(nodes, edges, senders, receivers, globals_, node_graph)
+            return self._fast(*args)
         if implementation != "plain":
             raise ValueError(f"implementation must be 'fast' or 'plain', got {implementation!r}")
-        return self._plain(nodes, edges, senders, receivers, globals_, node_graph)
+        return self._plain(*args)
 
     def _plain(
         self,
@@ -162,6 +166,7 @@ class InteractionNetwork(nn.Module):
         receivers: Tensor,
         globals_: Tensor | None,
         node_graph: Tensor | None,
+        edge_mask: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """The reference: the GN block as written, every edge MLP input concatenated."""
         edge_globals: list[Tensor] = []
@@ -171,8 +176,9 @@ class InteractionNetwork(nn.Module):
             edge_globals = [node_globals[0].index_select(0, receivers)]
         sender_latents = nodes.index_select(0, senders)
         receiver_latents = nodes.index_select(0, receivers)
-        messages = self.edge_mlp(
-            torch.cat([edges, sender_latents, receiver_latents, *edge_globals], dim=-1)
+        messages = _masked(
+            self.edge_mlp(torch.cat([edges, sender_latents, receiver_latents, *edge_globals], -1)),
+            edge_mask,
         )
         aggregated = nodes.new_zeros(nodes.shape[0], messages.shape[1])
         aggregated.index_add_(0, receivers, messages)
@@ -199,6 +205,7 @@ class InteractionNetwork(nn.Module):
         receivers: Tensor,
         globals_: Tensor | None,
         node_graph: Tensor | None,
+        edge_mask: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """The same function as _plain with the first edge layer split (see the class)."""
         n, latent = nodes.shape
@@ -225,15 +232,18 @@ class InteractionNetwork(nn.Module):
 
         def messages_of(edge: slice) -> Tensor:
             """phi_e of the edges in `edge`: W_e e + (W_s v)[s] + (W_r v + b)[r], then the
-            rest of the edge MLP."""
+            rest of the edge MLP; padding edges' zeroed."""
             gathered = from_senders.index_select(0, senders[edge])
             gathered = gathered.add_(from_receivers.index_select(0, receivers[edge]))
+            mask = None if edge_mask is None else edge_mask[edge]
             if not gathered.dtype == edges.dtype == w_edge.dtype:
                 # Under autocast `gathered` is bf16, and addmm casts the fp32 edges.
-                return _run_mlp(layers, torch.addmm(gathered, edges[edge], w_edge.t()))
-            # In place saves addmm copying `gathered` into a new output first (autograd allows
-            # it: no backward needs the sum of the gathers).
-            return _run_mlp(layers, gathered.addmm_(edges[edge], w_edge.t()))
+                first_layer = torch.addmm(gathered, edges[edge], w_edge.t())
+            else:
+                # In place saves addmm copying `gathered` into a new output first (autograd
+                # allows it: no backward needs the sum of the gathers).
+                first_layer = gathered.addmm_(edges[edge], w_edge.t())
+            return _masked(_run_mlp(layers, first_layer), mask)
 
         num_edges = edges.shape[0]
         pooled_messages = None
@@ -276,6 +286,15 @@ class InteractionNetwork(nn.Module):
             ]
             new_globals = globals_ + self.global_mlp(torch.cat(pooled, dim=-1))
         return _residual(nodes, node_update), new_edges, new_globals
+
+
+def _masked(messages: Tensor, edge_mask: Tensor | None) -> Tensor:
+    """The (E, L) messages with those of padding edges (edge_mask 0) zeroed: index_add_ then
+    adds exact zeros, so every node's sum is what it is without the padding. A multiply, not a
+    select, so that the whole step stays one fixed-shape graph (CUDA graphs)."""
+    if edge_mask is None:
+        return messages
+    return messages * edge_mask.to(messages.dtype)[:, None]
 
 
 def _residual(x: Tensor, update: Tensor) -> Tensor:
@@ -378,10 +397,15 @@ class EncodeProcessDecode(nn.Module):
         receivers: Tensor,
         global_features: Tensor | None = None,
         n_node: Tensor | None = None,
+        edge_mask: Tensor | None = None,
     ) -> Tensor:
         """node_features (N, node_input_size), edge_features (E, edge_input_size), senders and
         receivers (E,) int64; with a global latent also n_node (G,) (default: one graph) and
-        global_features (G, global_input_size). Returns (N, output_size), at least float32."""
+        global_features (G, global_input_size). Returns (N, output_size), at least float32.
+
+        edge_mask (E,) float, 1 for a real edge and 0 for a padding edge (static-capacity edge
+        lists, gns.simulator.pad_edges): a padding edge's message is zeroed before any sum, so
+        no node's result depends on it (its own edge latent is computed and never read)."""
         if self.implementation not in IMPLEMENTATIONS:
             raise ValueError(
                 f"implementation must be 'fast' or 'plain', got {self.implementation!r}"
@@ -401,7 +425,15 @@ class EncodeProcessDecode(nn.Module):
                 raise ValueError("this model was built with global features; pass them")
         elif global_features is not None:
             raise ValueError("this model has no global input; append global features to nodes")
-        args = (node_features, edge_features, senders, receivers, global_features, node_graph)
+        args = (
+            node_features,
+            edge_features,
+            senders,
+            receivers,
+            global_features,
+            node_graph,
+            edge_mask,
+        )
         with precision_context(self.precision, device):
             if self.implementation == "fast" and self.torch_compile:
                 out = self._run_compiled(*args, num_graphs)
@@ -417,11 +449,12 @@ class EncodeProcessDecode(nn.Module):
         receivers: Tensor,
         global_features: Tensor | None,
         node_graph: Tensor | None,
+        edge_mask: Tensor | None,
         num_graphs: int,
         implementation: Implementation = "fast",
     ) -> Tensor:
         """forward's body: node_graph (N,) the graph of each node and num_graphs G when
-        there is a global latent."""
+        there is a global latent; edge_mask as forward's."""
         # Encoders and decoder run as modules on either path (hooks on them keep working);
         # they are a small share of the work, and the fast path's savings are in the processor.
         nodes = self.node_encoder(node_features)
@@ -442,7 +475,7 @@ class EncodeProcessDecode(nn.Module):
         for step in self.processor:
             nodes, edges, globals_ = step(
                 nodes, edges, senders, receivers, globals_, node_graph,
-                implementation=implementation,
+                implementation=implementation, edge_mask=edge_mask,
             )  # fmt: skip
         return self.decoder(nodes)
 

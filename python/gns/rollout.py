@@ -208,9 +208,12 @@ def bf16_difference(model: torch.nn.Module, features: Mapping[str, Any]) -> floa
 
 def _forward(model: torch.nn.Module, features: Mapping[str, Any], precision: str) -> Tensor:
     args = [features[k] for k in FEATURE_KEYS]
+    # A padded edge list (LearnedSimulator.edge_bucket) comes with the mask of its padding.
+    mask = features.get("edge_mask")
+    padding = {} if mask is None else {"edge_mask": mask}
     saved, model.precision = model.precision, precision
     try:
-        return model(*args)
+        return model(*args, **padding)
     finally:
         model.precision = saved
 

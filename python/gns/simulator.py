@@ -34,7 +34,7 @@ from gns.model import EncodeProcessDecode
 from gns.noise import sample_noise, wall_push
 from gns.normalization import FixedNormalizer, Normalizer, RunningNormalizer
 
-__all__ = ["LearnedSimulator", "Scene"]
+__all__ = ["LearnedSimulator", "Scene", "edge_capacity", "pad_edges"]
 
 
 class _Statistics(Protocol):
@@ -195,6 +195,42 @@ class Scene:
 GraphObstacles = Sequence[Sequence[ops.Obstacle]] | None
 
 
+def edge_capacity(num_edges: int, bucket: int) -> int:
+    """The static capacity of an edge list of num_edges edges: the next multiple of `bucket`.
+    A rollout's E drifts by a few percent from step to step; within one bucket the padded
+    shapes stay the same, so a captured step (CUDA graphs) is replayed, not recaptured."""
+    if bucket < 1:
+        raise ValueError(f"the edge bucket must be a positive number of edges, got {bucket}")
+    return -(-num_edges // bucket) * bucket
+
+
+def pad_edges(
+    senders: Tensor, receivers: Tensor, edge_features: Tensor, n: int, capacity: int
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The edge list padded to `capacity` edges: (senders, receivers, edge_features, edge_mask),
+    edge_mask (capacity,) 1 for the E real edges, which come first and unchanged, 0 for the
+    padding. Padding edges have zero features and join particle k mod n to itself (spread
+    over the nodes, so that no one row takes every padding edge's atomic add on a GPU); the
+    network zeroes their messages (EncodeProcessDecode's edge_mask), so no node's result
+    depends on them."""
+    num_edges = senders.shape[0]
+    if capacity < num_edges:
+        raise ValueError(f"edge capacity {capacity} is below the graph's {num_edges} edges")
+    padding = capacity - num_edges
+    if padding and n < 1:
+        raise ValueError("padding edges need at least one node to point at")
+    pad = torch.arange(padding, device=senders.device) % max(n, 1)
+    mask = torch.ones(capacity, device=edge_features.device, dtype=edge_features.dtype)
+    mask[num_edges:] = 0.0
+    zeros = edge_features.new_zeros(padding, edge_features.shape[1])
+    return (
+        torch.cat([senders, pad]),
+        torch.cat([receivers, pad]),
+        torch.cat([edge_features, zeros]),
+        mask,
+    )
+
+
 def _as_rows(x: Tensor | np.ndarray | float, rows: int, width: int, name: str) -> Tensor:
     """x as (rows, width): a scalar or a (width,) vector is shared by all rows, a (rows,)
     vector is one value per row when width is 1."""
@@ -231,7 +267,14 @@ class LearnedSimulator(nn.Module):
     Shapes: position_sequence (N, C + 1, D), most recent last; particle_type (N,) int64;
     n_node (G,) particles per graph (default one graph); context (G, K) or (K,);
     material_property (), (N,) or (N, M).
+
+    edge_bucket: 0 (the default) runs each step on its own edge list; a positive number pads
+    the edge list to the next multiple of it (edge_capacity, pad_edges) with edges the network
+    ignores, so that a rollout's steps keep the same tensor shapes (what CUDA graphs need).
+    The results are the unpadded ones to float32 round-off. Set on the instance; not saved.
     """
+
+    edge_bucket: int = 0
 
     particle_type_ids: Tensor
     kinematic_type_ids: Tensor
@@ -466,9 +509,11 @@ class LearnedSimulator(nn.Module):
         obstacles: GraphObstacles = None,
     ) -> dict[str, Tensor | None]:
         """The model's inputs: node_features, edge_features, senders, receivers,
-        global_features (None unless the model has a global latent and the scene a context).
-        edge_features (E, D + 1) are the displacements x[senders] - x[receivers] divided by the
-        radius, then their length; CConv reads its kernel coordinates from the first D columns.
+        global_features (None unless the model has a global latent and the scene a context),
+        edge_mask (None unless edge_bucket pads the edge list: then 1 for the real edges, 0 for
+        the padding after them). edge_features (E, D + 1) are the displacements
+        x[senders] - x[receivers] divided by the radius, then their length; CConv reads its
+        kernel coordinates from the first D columns.
 
         mark: called with "graph" once the radius graph is built (see predict_positions).
         obstacles: each graph's static obstacle shapes (G lists of gns.Obstacle), for a scene
@@ -533,12 +578,22 @@ class LearnedSimulator(nn.Module):
 
         relative = relative / self.scene.radius
         distance = torch.linalg.vector_norm(relative, dim=-1, keepdim=True)
+        edge_features = torch.cat([relative, distance], dim=-1)
+        edge_mask = None
+        if self.edge_bucket:
+            if not isinstance(self.model, EncodeProcessDecode):
+                raise ValueError("padded edge lists (edge_bucket) are for the GNS, not CConv")
+            capacity = edge_capacity(senders.shape[0], self.edge_bucket)
+            senders, receivers, edge_features, edge_mask = pad_edges(
+                senders, receivers, edge_features, n, capacity
+            )
         return {
             "node_features": torch.cat(nodes, dim=-1),
-            "edge_features": torch.cat([relative, distance], dim=-1),
+            "edge_features": edge_features,
             "senders": senders,
             "receivers": receivers,
             "global_features": global_features,
+            "edge_mask": edge_mask,
         }
 
     def _obstacle_features(
@@ -599,6 +654,8 @@ class LearnedSimulator(nn.Module):
         )
         if mark is not None:
             mark("features")
+        # Only a padded edge list passes its mask: CConv takes none.
+        padding = {} if f["edge_mask"] is None else {"edge_mask": f["edge_mask"]}
         normalized = self.model(
             f["node_features"],
             f["edge_features"],
@@ -606,6 +663,7 @@ class LearnedSimulator(nn.Module):
             f["receivers"],
             f["global_features"],
             n_node,
+            **padding,
         )
         if mark is not None:
             mark("model")
