@@ -1,15 +1,15 @@
 """Does a sand model fall at g? One step of a block in free fall, far from every wall.
 
     python scripts/free_fall_probe.py MODEL [MODEL ...] [--corner 0.4 0.45] [--size 0.2]
-        [--spacing 0.0078125] [--friction-angle 30] [--particle-type T]
+        [--spacing 0.0078125] [--friction-angle 30] [--particle-type T] [--speed 0]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block (a lattice of
 `spacing`, `size` wide, lower-left corner at `corner`; the defaults are sand2d-taichi's block
 and particle spacing) is given the model's C + 1 input frames of a throw upwards that reaches
-its top at the last one, so it has been in free fall throughout. Every real simulator then
-accelerates it at exactly g; the model's mean vertical acceleration over g is printed, with
-that of the bottom and top rows (a bottom falling faster than the top squeezes the block
-before it lands). A model that has learned gravity prints 1.00. The particles are of the
+its top at the last one (or, with --speed V, falling at V m/s there), so it has been in free
+fall throughout. Every real simulator then accelerates it at exactly g; the model's mean
+vertical acceleration over g is printed, with that of the bottom and top rows (a bottom
+falling faster than the top squeezes the block before it lands). A model that has learned gravity prints 1.00. The particles are of the
 scene's one free (not kinematic) type unless --particle-type says which.
 """
 
@@ -32,6 +32,13 @@ def main() -> None:
     parser.add_argument("--spacing", type=float, default=1 / 128)
     parser.add_argument("--friction-angle", type=float, default=30.0)
     parser.add_argument("--particle-type", type=int)
+    parser.add_argument(
+        "--speed",
+        type=float,
+        default=0.0,
+        help="m/s downward at the last input frame (default 0: the top of a throw, whose "
+        "input velocities look almost at rest)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     block = lattice(args.corner, (args.size, args.size), args.spacing)
@@ -50,7 +57,9 @@ def main() -> None:
             context, particle_type = probes.probe_inputs(
                 simulator, args.friction_angle, args.particle_type
             )
-            mean, bottom, top = probes.fall_in_g(simulator, block, context, particle_type)
+            mean, bottom, top = probes.fall_in_g(
+                simulator, block, context, particle_type, args.speed
+            )
         except ValueError as err:
             raise SystemExit(f"{name}: {err}") from err
         print(f"{name}: falls at {mean:.2f} g (bottom row {bottom:.2f} g, top row {top:.2f} g)")

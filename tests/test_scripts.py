@@ -126,6 +126,15 @@ def test_free_fall_probe_reads_a_simulators_fall_in_g(fraction):
     np.testing.assert_allclose(acceleration[..., 0], 0.0, atol=1e-7)
     np.testing.assert_allclose(history[:, -1], history[:, -2], atol=1e-7)
     np.testing.assert_allclose(history[:, -1], block, atol=1e-7)
+    # --speed: falling at 1.5 m/s at the last input frame, still at g throughout.
+    mean, _, _ = probe.fall_in_g(stepper, block, 0.5, 6, 1.5)
+    assert mean == pytest.approx(fraction, abs=1e-9)
+    history = stepper.given
+    acceleration = history[:, 2:] - 2 * history[:, 1:-1] + history[:, :-2]
+    np.testing.assert_allclose(acceleration[..., 1], -g_step, rtol=1e-3)
+    np.testing.assert_allclose(
+        history[:, -1] - history[:, -2], [[0.0, -1.5 * dt]] * len(block), atol=1e-7
+    )
 
 
 def test_free_fall_probe_runs_on_a_trained_model(strided):

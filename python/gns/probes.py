@@ -106,11 +106,20 @@ def _accelerations(
     return following.double().numpy() - 2 * seen[:, -1] + seen[:, -2]
 
 
-def fall_in_g(simulator: Any, block: np.ndarray, context: Tensor | None, particle_type: int):
-    """The block's vertical acceleration in one predicted step from the top of a throw (free
-    fall throughout), over g: (mean, bottom row, top row); positive is downward."""
+def fall_in_g(
+    simulator: Any,
+    block: np.ndarray,
+    context: Tensor | None,
+    particle_type: int,
+    speed: float = 0.0,
+):
+    """The block's vertical acceleration in one predicted step of free fall (throughout the
+    input frames), over g: (mean, bottom row, top row); positive is downward. speed: how fast
+    (m/s) the block falls at the last input frame; 0, the top of a throw, is the hardest case,
+    where every input velocity is within a few g dt of rest."""
     g = g_step(simulator)
-    history = block_history(block, simulator.config.model.velocity_history + 1, g)
+    frames = simulator.config.model.velocity_history + 1
+    history = block_history(block, frames, g, -speed * simulator.scene.dt)
     fall = -_accelerations(simulator, history, particle_type, context)[:, 1] / g
     y = block[:, 1]
     return fall.mean(), fall[y == y.min()].mean(), fall[y == y.max()].mean()
