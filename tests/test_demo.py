@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import torch
 from data_helpers import metadata_dict, random_walk, write_metadata
-from gns.checkpoints import latest_checkpoint, load_checkpoint
+from gns.checkpoints import choose_checkpoint, latest_checkpoint, load_checkpoint, model_location
 from gns.cli import main
-from gns.config import Config, ModelConfig, TrainConfig
-from gns.data import open_dataset
+from gns.config import Config, ModelConfig, TrainConfig, from_dict
+from gns.data import at_frame_stride, open_dataset
 from gns.data.h5 import write_h5
-from gns.demo import SIZES, demo, demo_config
+from gns.demo import SIZES, demo, demo_config, finetune_config, headline
 from gns.train import train
 from PIL import Image
 
@@ -45,8 +45,11 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
         assert phase in err
     report = out / "report"
     test = open_dataset(out / "data", "test")
-    (trajectory,) = list(test)
+    # The shipped sand2d-taichi model steps over 3 of the preset's 2.5 ms frames: every row
+    # predicts every 3rd frame (gns.report).
+    (trajectory,) = [at_frame_stride(t, 3) for t in test]
     n, frames = trajectory.n_particles, trajectory.num_frames
+    assert test.metadata.dt == 0.0025 and frames == 10
 
     expected = [
         "report.md",
@@ -59,7 +62,6 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
         "rollout_test_0.gif",
         "vtk/ground_truth.pvd",
         "vtk/prediction.pvd",
-        "rollouts/step_000000004/rollout_test_0.npz",
     ]
     for name in expected:
         assert (report / name).is_file() and (report / name).stat().st_size > 0, name
@@ -85,10 +87,17 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
 
     payload = json.loads((report / "table.json").read_text())
     methods = [row["method"] for row in payload["rows"]]
-    # GNS rows (latest, and best.pt when validation chose another step), five MPM settings
-    # (auto: native, 0.6 and 0.5 of the grid, twice the CFL number, both), the baselines.
+    # Three GNS rows (the shipped model, its fine-tuning, the model from scratch), five MPM
+    # settings (auto: native, 0.6 and 0.5 of the grid, twice the CFL number, both), the
+    # baselines; each GNS row's rollouts saved.
     baselines = ["constant velocity", "static"]
-    assert set(methods[:-7]) == {"GNS"} and methods[-7:] == ["MPM"] * 5 + baselines
+    assert methods == ["GNS"] * 3 + ["MPM"] * 5 + baselines
+    settings = sorted(row["setting"].split(":")[0] for row in payload["rows"][:3])
+    assert settings[0].startswith("fine-tuned") and settings[1:] == [
+        "from scratch",
+        "shipped sand2d-taichi",
+    ]
+    assert len(list(report.glob("rollouts/*/rollout_test_0.npz"))) == 3
     with open(report / "table.csv", newline="") as f:
         records = list(csv.DictReader(f))
     assert len(records) == len(payload["rows"])
@@ -120,11 +129,21 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
     for link in re.findall(r"\]\(([^)]+)\)", markdown):
         assert (report / link).is_file(), link
     assert "gns demo --out" in markdown and "logical CPUs" in markdown
-    assert markdown.splitlines()[2].startswith("**In short.** Over the full 10-frame rollouts")
-    # best.pt was chosen on validation rollouts as long as the test rollouts (issue 22).
-    config = load_checkpoint(latest_checkpoint(out / "run"))["config"]
-    assert config["train"]["validation_rollout_steps"] == frames - 6 == 10
-    assert "validation: rollouts of 10 frames, as long as the test rollouts" in markdown
+    # The conclusion speaks of the headline, the first row, chosen on validation.
+    headline = payload["rows"][0]["setting"].split(":")[0]
+    assert markdown.splitlines()[2].startswith(
+        "**In short.** Where it stands against the reference simulator (5 settings, "
+    )
+    assert f"Headline (the row the conclusion speaks of): {headline}, the best on the valid " in (
+        markdown
+    )
+    # Both trainings validated on every valid trajectory over rollouts as long as the test
+    # rollouts (issues 22 and 41); the fine-tuning validated the shipped model as its step 0.
+    for run in ("finetune", "scratch"):
+        train_config = load_checkpoint(latest_checkpoint(out / run))["config"]["train"]
+        assert train_config["validation_rollout_steps"] == frames - 6 == 4
+        assert train_config["validation_rollouts"] == 1
+    assert (out / "finetune/valid.csv").read_text().splitlines()[1].startswith("0,")
     if shutil.which("ffmpeg") is None:
         assert "MP4 animation: no ffmpeg executable on PATH" in markdown
     else:
@@ -133,11 +152,12 @@ def test_tiny_demo_writes_a_complete_report_and_resumes(tmp_path, capsys):
     assert html.count("<tr>") == 1 + len(payload["rows"])
 
     # A second run reuses the dataset and the finished training and rewrites the report.
-    trained = (out / "training.json").read_text()
+    trained = [(out / f"{run}.json").read_text() for run in ("finetune", "scratch")]
     assert main(["demo", "--out", str(out), "--size", "tiny", "--workers", "1"]) == 0
     err = capsys.readouterr().err
-    assert "reusing the dataset" in err and "training finished earlier (step 4)" in err
-    assert (out / "training.json").read_text() == trained
+    assert "reusing the dataset" in err
+    assert "finetune finished earlier (step 4)" in err and "scratch finished earlier" in err
+    assert [(out / f"{run}.json").read_text() for run in ("finetune", "scratch")] == trained
     # Other arguments in the same folder are refused, not mixed in.
     with pytest.raises(ValueError, match="other arguments"):
         demo(out, size="tiny", seed=1)
@@ -168,14 +188,37 @@ def test_demo_rejects_unknown_sizes_and_bad_overrides(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-def test_demo_validates_on_rollouts_as_long_as_the_test_rollouts():
+def test_demo_validates_on_every_valid_trajectory_over_the_test_rollouts_length():
     # The report rolls out every frame after the first C + 1 of each test trajectory; best.pt
-    # must be chosen on rollouts as long (issue 22: chosen on 50 frames, it diverged by 155).
-    assert demo_config(SIZES["small"], 10).train.validation_rollout_steps == 155
+    # must be chosen on rollouts as long (issue 22: chosen on 50 frames, it diverged by 155)
+    # and on every valid trajectory (issue 41: chosen on 2, it merely stayed in the box).
+    shipped = load_checkpoint(choose_checkpoint(model_location("sand2d-taichi")))
+    shipped_config = from_dict(Config, shipped["config"])
     for size in SIZES.values():
-        config = demo_config(size, 10)
-        history = config.model.velocity_history + 1
-        assert config.train.validation_rollout_steps == size.frames - history
+        scratch = demo_config(size, 10, 110, 4)
+        tuned = finetune_config(shipped_config, size, 10, 110, 4)
+        for config in (scratch, tuned):
+            assert config.train.validation_rollout_steps == 110
+            assert config.train.validation_rollouts == 4
+            assert config.train.validate_every == size.validate_every
+        # Fine-tuning may change only [noise] and [train] (gns.train refuses the rest).
+        assert (tuned.model, tuned.scene, tuned.noise) == (
+            shipped_config.model,
+            shipped_config.scene,
+            shipped_config.noise,
+        )
+        assert tuned.train.learning_rate < shipped_config.train.learning_rate * 1.01
+
+
+def test_the_headline_is_in_the_box_first_then_the_lowest_validation_mse():
+    def candidate(value, in_box):
+        return {"record": {"step": 1, "value": value, "in_box": in_box}}
+
+    # An early checkpoint with a low MSE that let a particle out loses to one in the box.
+    assert headline([candidate(1e-4, False), candidate(5e-3, True), candidate(6e-3, True)]) == 1
+    assert headline([candidate(2e-3, True), candidate(1e-3, True)]) == 1
+    assert headline([candidate(1e-3, True), candidate(1e-3, True)]) == 0  # the first of equals
+    assert headline([candidate(2e-3, False), candidate(1e-3, False)]) == 1
 
 
 # ---------------------------------------------------------------------------- time limit
@@ -253,7 +296,8 @@ def test_tiny_3d_demo_reruns_its_scenes_and_draws_two_views(tmp_path):
     report = out / "report"
     (trajectory,) = list(open_dataset(out / "data", "test"))
     assert trajectory.dim == 3 and set(np.unique(trajectory.particle_type)) == {0, 5}
-    rollout = np.load(report / "rollouts/step_000000004/rollout_test_0.npz")
+    (saved,) = report.glob("rollouts/*/rollout_test_0.npz")  # one row: no shipped 3D model
+    rollout = np.load(saved)
     assert rollout["predicted_rollout"].shape[1:] == (trajectory.n_particles, 3)
     rows = json.loads((report / "table.json").read_text())["rows"]
     native = next(row for row in rows if row["method"] == "MPM" and "native" in row["setting"])

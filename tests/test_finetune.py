@@ -21,7 +21,7 @@ from gns.cli import main
 from gns.config import ModelConfig, TrainConfig
 from gns.data import write_dataset
 from gns.train import train
-from test_train import config, make_dataset, parameters, trained_run
+from test_train import config, make_dataset, parameters, read_csv, trained_run
 
 
 def weights(simulator) -> dict[str, torch.Tensor]:
@@ -82,6 +82,7 @@ def test_fine_tuning_trains_with_its_own_noise(tmp_path):
     assert largest_difference(weights(tuned), weights(same)) > 0
 
 
+@pytest.mark.usefixtures("torch_one_thread")  # a fixed thread count: the same sums every step
 def test_a_fine_tuned_run_resumes_exactly(tmp_path):
     run, data = trained_run(tmp_path / "a", steps=4)
     straight = train(data, tmp_path / "b", config(6), progress=False, init_from=run)
@@ -158,3 +159,30 @@ def test_the_shipped_model_fine_tunes_on_data_of_its_scene(tmp_path, old_format)
     train(tmp_path / "d", tmp_path / "b", config, progress=False, init_from=init_from)
     tuned = load_simulator(tmp_path / "b")
     assert tuned.scene == scene
+
+
+def test_fine_tuning_validates_its_start_so_best_is_never_worse(tmp_path):
+    run, _ = trained_run(tmp_path / "a", steps=6)
+    data = make_dataset(tmp_path / "other")  # has a valid split
+    source = load_simulator(run, checkpoint="latest")
+    # A learning rate so large that the first steps wreck the weights: no later validation
+    # can beat the start, so best.pt must be the starting weights, validated as step 0.
+    wild = config(4, learning_rate=1.0, learning_rate_final=1.0, validate_every=2)
+    wild = dataclasses.replace(wild, train=dataclasses.replace(wild.train, validation_rollouts=2))
+    train(data, tmp_path / "b", wild, progress=False, init_from=run)
+    steps = [row["step"] for row in read_csv(tmp_path / "b" / "valid.csv")]
+    assert steps == ["0", "2", "4"]
+    rollout = [float(row["rollout_mse"]) for row in read_csv(tmp_path / "b" / "valid.csv")]
+    assert rollout[0] < min(rollout[1:])  # the test can fail: the wild steps did get worse
+    best = load_checkpoint(tmp_path / "b" / "checkpoints" / "best.pt")
+    assert best["best"]["step"] == 0 and best["step"] == 0
+    kept = load_simulator(tmp_path / "b", checkpoint="best")
+    assert largest_difference(weights(kept), weights(source)) == 0.0
+
+
+def test_a_time_limited_run_validates_its_last_step(tmp_path):
+    data = make_dataset(tmp_path / "data")
+    # The limit has passed after the first step; validation every 100 steps would never run.
+    train(data, tmp_path / "run", config(50, validate_every=100), progress=False, time_limit=1e-9)
+    assert [row["step"] for row in read_csv(tmp_path / "run" / "valid.csv")] == ["1"]
+    assert load_checkpoint(tmp_path / "run" / "checkpoints" / "best.pt")["step"] == 1

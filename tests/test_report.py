@@ -459,6 +459,8 @@ def test_a_coarser_grid_keeps_every_particle_where_it_was(generated):
         ({"mpm": ["native", "none"]}, "cannot be combined"),
         ({"checkpoints": ["nope.pt"]}, "does not exist"),
         ({"checkpoints": []}, "at least one checkpoint"),
+        ({"labels": ["a", "b"]}, "2 labels for 1 checkpoints"),
+        ({"headline": 1}, "headline must index the 1 checkpoints, got 1"),
     ],
 )
 def test_bad_report_arguments_are_refused_before_any_work(generated, monkeypatch, change, message):
@@ -537,11 +539,14 @@ def test_the_conclusion_opens_the_report(generated_report):
     truth = payload["deposits"]["ground_truth"]["mean"]
     sentences = conclusion(rows, payload["columns"], payload["context"]["steps"], truth)
     assert payload["context"]["conclusion"] == sentences and len(sentences) >= 5
-    assert sentences[0].startswith("Over the full 8-frame rollouts GNS")
-    assert "and" in sentences[0] and "than the static baseline" in sentences[0]
-    assert sentences[1].startswith("Where the sand stops (the last frame")
-    assert f"against the truth's {truth['runout']:.3g}" in sentences[1]
-    assert sentences[2].startswith("Held still for 2 steps")
+    # First, plainly, where the best learned row stands against the simulator's settings.
+    assert sentences[0].startswith("Where it stands against the reference simulator (")
+    sentences_after = sentences[1:]
+    assert sentences_after[0].startswith("Over the full 8-frame rollouts GNS")
+    assert "and" in sentences_after[0] and "than the static baseline" in sentences_after[0]
+    assert sentences_after[1].startswith("Where the sand stops (the last frame")
+    assert f"against the truth's {truth['runout']:.3g}" in sentences_after[1]
+    assert sentences_after[2].startswith("Held still for 2 steps")
     assert any("the reference simulator at its native settings" in s for s in sentences)
     markdown = (out / "report.md").read_text().splitlines()
     assert markdown[2] == "**In short.** " + " ".join(sentences)

@@ -387,7 +387,8 @@ def train(
     the model's own config), and the data must be the model's scene: the same dimension,
     frame spacing and global input, with particle types it knows (another box is announced;
     the model keeps its own walls). Metadata normalisation keeps the model's noise-inflated
-    std. The checkpoints record where the weights came from.
+    std. The checkpoints record where the weights came from. With validation, the starting
+    weights are validated first (valid.csv's step 0; best.pt when nothing later beats them).
 
     resume=True continues from the newest checkpoint in run_dir with its saved settings (the
     `config` argument must then be None or differ only in train.steps, to train for longer):
@@ -395,8 +396,9 @@ def train(
     steps overrides config.train.steps (e.g. to resume a finished run for longer). A run
     folder that already has checkpoints is never overwritten without resume.
     time_limit: wall-clock seconds for this call (loading included); training stops after the
-    first step that ends past it, writes a checkpoint of that step and returns. resume=True then
-    continues from that checkpoint exactly as an uninterrupted run would have.
+    first step that ends past it, validates (with validation) and writes a checkpoint of that
+    step and returns. resume=True then continues from that checkpoint exactly as an
+    uninterrupted run would have.
     A non-finite loss or gradient stops training with FloatingPointError naming the step, what
     was non-finite and the batch's windows, before the optimizer applies it; a loss spike (see
     TrainConfig.spike_factor) is reported on stderr and in spikes.csv. On resume, a newest
@@ -596,6 +598,25 @@ def train(
     # Threads chosen by timing the steps (gns.threads): a fixed count stalls when another
     # process holds a core. Fixed by --threads / OMP_NUM_THREADS (e.g. for exact resumes).
     tuner = thread_tuner()
+
+    def validate_and_keep(done: int) -> None:
+        """Validate the weights after `done` steps; they become best.pt when they beat it."""
+        nonlocal best
+        if log is None:  # only the leader validates
+            return
+        figures = validate(simulator, valid_trajectories, tc, device)
+        if figures:
+            log.write("valid", done, figures)
+        record = better_validation(figures, best, simulator.scene.radius)
+        if record is not None:
+            best = {"step": done, **record}
+            # Weights only: best.pt is for rollouts, resuming uses step_*.pt.
+            save_checkpoint(run_dir / "checkpoints" / "best.pt", weights_state(done))
+
+    if initial is not None and checkpoint is None and tc.validate_every:
+        # Fine-tuning: the starting weights are validated first (step 0), so best.pt is never
+        # worse on validation than the model the run started from.
+        validate_and_keep(0)
     step = start
     stopped_at: int | None = None
     try:
@@ -698,15 +719,10 @@ def train(
                     )
                 meter.show(done, float(mean), force=True)
                 losses, grad_norms = [], []
-            if log is not None and tc.validate_every and done % tc.validate_every == 0:
-                figures = validate(simulator, valid_trajectories, tc, device)
-                if figures:
-                    log.write("valid", done, figures)
-                record = better_validation(figures, best, simulator.scene.radius)
-                if record is not None:
-                    best = {"step": done, **record}
-                    # Weights only: best.pt is for rollouts, resuming uses step_*.pt.
-                    save_checkpoint(run_dir / "checkpoints" / "best.pt", weights_state(done))
+            # A run stopped by its time limit validates its last weights too: without it they
+            # could never become best.pt.
+            if tc.validate_every and (done % tc.validate_every == 0 or stopping):
+                validate_and_keep(done)
             if done % tc.checkpoint_every == 0 or done == tc.steps or stopping:
                 write_checkpoint(done)
             if stopping:

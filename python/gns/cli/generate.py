@@ -65,25 +65,30 @@ def add_demo(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
     demo = sub.add_parser(
         "demo",
-        help="generate a small dataset, train a GNS for minutes, write the report (all on CPU)",
-        description="OUT/data (gns generate), OUT/run (gns train, time-limited), OUT/report "
-        "(gns report on the test split). Repeating the command resumes. The default (size "
-        "small) takes about 5-10 minutes on a 2-core CPU.",
+        help="generate a small dataset, fine-tune the shipped model and train one from scratch "
+        "for minutes, write the report (all on CPU)",
+        description="OUT/data (gns generate), OUT/finetune (the shipped model of the preset's "
+        "scenes fine-tuned, time-limited: gns train --init-from), OUT/scratch (a small GNS from "
+        "scratch, as long), OUT/report (gns report on the test split: the shipped model, its "
+        "fine-tuning and the model from scratch; the headline chosen on the valid split). "
+        "Repeating the command resumes. The default (size small) takes about 10 minutes on an "
+        "idle 2-core CPU.",
     )
     demo.add_argument("--out", type=Path, default=Path("demo"), help="default: ./demo")
     demo.add_argument(
         "--preset",
         type=preset_name,
-        default="sand",
-        help="gns generate preset (default sand)",
+        default="sand-taichi",
+        help="gns generate preset (default sand-taichi, the shipped sand2d-taichi model's "
+        "scenes; a preset without a shipped model trains from scratch only)",
     )
     demo.add_argument("--size", choices=list(SIZES), default="small", help="default small")
     demo.add_argument(
         "--train-minutes",
         type=positive_number("minutes"),
-        help="training time (default: the size's)",
+        help="each training's time (default: the size's)",
     )
-    demo.add_argument("--steps", type=positive_int, help="at most this many training steps")
+    demo.add_argument("--steps", type=positive_int, help="at most this many steps in each training")
     demo.add_argument(
         "--trajectories",
         type=positive_int,

@@ -57,7 +57,8 @@ earlier report there; nothing is written before every argument has been checked)
   error_vs_time.png           error at each horizon against ms per frame, one marker per row
   error_over_time.png         MSE per frame and OT at the evaluated frames, per row
   fronts.png                  the fronts of the first trajectory over time, per row and truth
-  rollout_{split}_{i}.gif     ground truth and prediction side by side (and .mp4 with ffmpeg)
+  rollout_{split}_{i}.gif     ground truth and prediction side by side (and .mp4 with ffmpeg);
+                              the prediction of the headline checkpoint (default the first)
   vtk/                        ground_truth.pvd, prediction.pvd + one .vtp per frame (ParaView)
   rollouts/{checkpoint}/      the learned rollouts (gns.rollout's npz schema, for `gns eval`)
 
@@ -200,6 +201,8 @@ def report(
     progress: bool = True,
     command: str | None = None,
     notes: Sequence[str] = (),
+    labels: Sequence[str] | None = None,
+    headline: int | None = None,
 ) -> ReportResult:
     """Write the report folder (see the module docstring) for the run (folder or checkpoint
     file) on `split` of the dataset at `data`.
@@ -211,10 +214,13 @@ def report(
     frame stride (0: no VTK files; default: at most about 100 frames, as ASCII VTK takes ~30
     bytes per particle and frame). rest_steps: hold each trajectory's last frame still and roll
     every checkpoint out this many steps from it (gns.evaluate.rest_test; 0: no rest test).
-    command, notes: shown in the report. out: default RUN/report_SPLIT (for a model folder,
-    ./NAME/report_SPLIT: gns.checkpoints.run_folder); it must be missing, empty or an earlier
-    report, which the new one replaces when it is complete (a failed report leaves `out` as it
-    was).
+    command, notes: shown in the report. labels: a name per checkpoint, shown before its file
+    in its row (e.g. "fine-tuned"). headline: the index in `checkpoints` of the row the
+    conclusion speaks of, chosen by the caller on other data (e.g. the valid split); default:
+    the learned row of lowest MSE over the full rollout, which is chosen on this split. out:
+    default RUN/report_SPLIT (for a model folder, ./NAME/report_SPLIT:
+    gns.checkpoints.run_folder); it must be missing, empty or an earlier report, which the new
+    one replaces when it is complete (a failed report leaves `out` as it was).
     """
 
     from gns.checkpoints import load_checkpoint, run_folder, simulator_from_checkpoint
@@ -253,7 +259,16 @@ def report(
             f"got {trajectories!r}"
         )
     indices = list(range(trajectories or len(dataset)))
-    chosen = list(dict.fromkeys(_checkpoint(run, which) for which in checkpoints))
+    if labels is not None and len(labels) != len(checkpoints):
+        raise ValueError(f"{len(labels)} labels for {len(checkpoints)} checkpoints")
+    if headline is not None and headline not in range(len(checkpoints)):
+        raise ValueError(f"headline must index the {len(checkpoints)} checkpoints, got {headline}")
+    paths = [_checkpoint(run, which) for which in checkpoints]
+    # One row per file; a file named twice keeps its first label.
+    named = dict(zip(reversed(paths), reversed(labels or [""] * len(paths)), strict=True))
+    chosen = list(dict.fromkeys(paths))
+    # The row the conclusion speaks of, and the animation and VTK files show.
+    shown = 0 if headline is None else chosen.index(paths[headline])
     metadata = dataset.metadata
     # Each file read and CRC-checked once, here.
     states = [load_checkpoint(path) for path in chosen]
@@ -304,6 +319,7 @@ def report(
         for path, state, simulator, stem in zip(chosen, states, simulators, stems, strict=True):
             row, predicted = _learned_row(
                 path,
+                named[path],
                 simulator,
                 _trained_for(state),
                 items,
@@ -317,7 +333,7 @@ def report(
                 say,
             )
             rows.append(row)
-            if not predictions:
+            if len(rows) - 1 == shown:
                 predictions = predicted
         left_out: list[str] = []
         if plan.reason:
@@ -368,7 +384,7 @@ def report(
                 split,
                 metadata.bounds,
                 frame_dt,
-                rows[0].short,
+                rows[shown].short,
                 animation_frames,
                 vtk_every,
                 left_out,
@@ -406,7 +422,14 @@ def report(
             "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
             "notes": list(notes),
             "left_out": left_out,
-            "conclusion": conclusion(rows, columns, steps, truth["mean"], frame=frame),
+            "conclusion": conclusion(
+                rows,
+                columns,
+                steps,
+                truth["mean"],
+                frame=frame,
+                headline=None if headline is None else rows[shown],
+            ),
         }
         payload = {
             "columns": columns,

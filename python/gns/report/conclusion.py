@@ -120,6 +120,56 @@ def _rest_sentence(best: Row) -> str | None:
     return sentence + "."
 
 
+def _against_all(chosen: Sequence[Row], among: Sequence[Row], yes: str, no: str) -> str:
+    """ "yes than every one", "no than every one", or "yes than A, B and no than the other 2"."""
+    if len(chosen) == len(among):
+        return f"{yes} than every one"
+    if not chosen:
+        return f"{no} than every one"
+    others = len(among) - len(chosen)
+    names = ", ".join(r.short for r in chosen)
+    return f"{yes} than {names} and {no} than the other {'one' if others == 1 else others}"
+
+
+def _standing(best: Row, mpm: Sequence[Row], keys: Sequence[str], steps: int, frame: str) -> str:
+    """Where the learned row stands against the reference simulator, plainly: faster or slower
+    than its settings, lower or higher MSE over the longest horizon, and the regimes (a setting
+    and the horizons) where it is both faster and more accurate, if any. The native row of a
+    simulator that made the data counts too: exact, it is the accuracy to beat."""
+    assert best.seconds_per_frame is not None
+    seconds = best.seconds_per_frame
+    key = keys[-1]
+    faster = [r for r in mpm if seconds < r.seconds_per_frame]  # type: ignore[operator]
+    better = [r for r in mpm if (v := _finite(r, key)) is not None and best.values[key] < v]
+    times = sorted(r.seconds_per_frame for r in mpm)  # type: ignore[type-var]
+    span = _ms(times[0]) if len(times) == 1 else f"{_ms(times[0])} to {_ms(times[-1])}"
+    wins = []
+    for r in faster:
+        won = [
+            _horizon_phrase(k, steps)
+            for k in keys
+            if (ours := _finite(best, k)) is not None
+            and (theirs := _finite(r, k)) is not None
+            and ours < theirs
+        ]
+        if len(won) == len(keys):
+            wins.append(f"{r.short} at every horizon")
+        elif won:
+            wins.append(f"{r.short} over {', '.join(won)}")
+    regime = (
+        "it wins (faster and more accurate) against " + "; ".join(wins)
+        if wins
+        else "it wins in no regime tried here: every setting is more accurate than it or faster"
+    )
+    return (
+        f"Where it stands against the reference simulator ({len(mpm)} setting"
+        f"{'' if len(mpm) == 1 else 's'}, {span} per {frame}): at {_ms(seconds)} per {frame} "
+        f"{best.short} is {_against_all(faster, mpm, 'faster', 'slower')}, and over "
+        f"{_horizon_phrase(key, steps)} its MSE is "
+        f"{_against_all(better, mpm, 'lower', 'higher')}; {regime}."
+    )
+
+
 def conclusion(
     rows: Sequence[Row],
     columns: Sequence[str],
@@ -127,6 +177,7 @@ def conclusion(
     truth: Mapping[str, float] | None = None,
     *,
     frame: str = "frame",
+    headline: Row | None = None,
 ) -> list[str]:
     """The table in plain words, computed from it: how the best learned row compares with
     constant velocity (and the static baseline, when there is its row) over the longest horizon
@@ -137,7 +188,12 @@ def conclusion(
     with the cheaper MPM settings, and which learned rows diverged. One sentence a list entry;
     true for any outcome (a learned model worse than the baseline, every learned row diverged,
     no MPM rows). Times are quoted per `frame`, what the rows' seconds_per_frame are per
-    (at a frame stride, one step of the model: "7.5 ms step")."""
+    (at a frame stride, one step of the model: "7.5 ms step").
+
+    headline: the learned row to speak of (chosen by the caller on other data, e.g. the
+    valid split); default: the lowest MSE over the longest horizon, chosen on these rows. When
+    the reference simulator ran, the conclusion opens with where that row stands against it
+    (_standing)."""
     keys = [c for c in columns if c.startswith("mse@")]
     learned = [r for r in rows if r.role == "learned"]
     baseline = next((r for r in rows if r.method == CONSTANT_VELOCITY), None)
@@ -151,12 +207,20 @@ def conclusion(
     sentences = []
     key = keys[-1]  # the longest horizon: what a simulator is for
     horizon = _horizon_phrase(key, steps)
-    best = _lowest(learned, key)
-    if best is None:
-        sentences.append(
-            f"Over {horizon} no learned model has a finite MSE (every one diverged, see below); "
-            f"constant velocity's is {_format(baseline.values.get(key))}."
+    best = _lowest(learned, key) if headline is None else headline
+    timed = [r for r in rows if r.role == "mpm" and r.seconds_per_frame is not None]
+    if best is not None and _finite(best, key) is not None and best.seconds_per_frame and timed:
+        sentences.append(_standing(best, timed, keys, steps, frame))
+    if best is None or _finite(best, key) is None:
+        who = (
+            "no learned model has a finite MSE (every one diverged, see below)"
+            if best is None
+            else f"{best.short} has no finite MSE (it diverged, see below)"
         )
+        sentences.append(
+            f"Over {horizon} {who}; constant velocity's is {_format(baseline.values.get(key))}."
+        )
+        best = None
     else:
         sentence = (
             f"Over {horizon} {best.short} has "

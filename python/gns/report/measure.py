@@ -251,6 +251,7 @@ def _trained_for(state: Mapping[str, Any]) -> str | None:
 
 def _learned_row(
     checkpoint: Path,
+    label: str,
     simulator: Any,
     trained_for: str | None,
     trajectories: list[Any],
@@ -263,15 +264,17 @@ def _learned_row(
     rest_steps: int,
     say: Callable[[str], None],
 ) -> tuple[Row, list[np.ndarray]]:
-    """Roll the simulator of the file `checkpoint` (trained_for: e.g. "step 4000") out on every
-    trajectory (timed), score the rollouts, save them with their deposit (Rollout.metrics) and
-    `recorded` (what they ran on: dataset, split, frame stride) in their metadata, and with
-    rest_steps > 0 run the rest test on every trajectory. Returns the row and the predictions
-    (S, N, D) per trajectory, NaN after a divergence."""
+    """Roll the simulator of the file `checkpoint` (label: a name for its row or ""; trained_for:
+    e.g. "step 4000") out on every trajectory (timed), score the rollouts, save them with their
+    deposit (Rollout.metrics) and `recorded` (what they ran on: dataset, split, frame stride)
+    in their metadata, and with rest_steps > 0 run the rest test on every trajectory. Returns
+    the row and the predictions (S, N, D) per trajectory, NaN after a divergence."""
     from gns.evaluate import rest_summary, rest_test
     from gns.rollout import RolloutDiverged, rollout, rollout_path, save_rollout
 
     setting = f"{checkpoint.name} ({trained_for})" if trained_for else checkpoint.name
+    if label:
+        setting = f"{label}: {setting}"
     say(f"rolling out {setting} on {len(trajectories)} trajectories")
     # One short untimed rollout first: the first call pays for lazy initialisation (allocator,
     # kernels), which is not the cost of simulating a frame.

@@ -242,7 +242,7 @@ def _write_media(
     left_out: list[str],
     say: Callable[[str], None],
 ) -> dict[str, Path]:
-    """The animation and VTK files of one trajectory and the first checkpoint's prediction
+    """The animation and VTK files of one trajectory and the headline checkpoint's prediction
     (`label`: the row's, e.g. "GNS best.pt (step 2000)"), both up to the frame where the
     prediction diverged, if it did; in the box `bounds`, with frames `dt` seconds apart."""
     from gns.plots import animation, diverged_frame
