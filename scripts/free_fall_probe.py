@@ -9,8 +9,9 @@ and particle spacing) is given the model's C + 1 input frames of a throw upwards
 its top at the last one (or, with --speed V, falling at V m/s there), so it has been in free
 fall throughout. Every real simulator then accelerates it at exactly g; the model's mean
 vertical acceleration over g is printed, with that of the bottom and top rows (a bottom
-falling faster than the top squeezes the block before it lands). A model that has learned gravity prints 1.00. The particles are of the
-scene's one free (not kinematic) type unless --particle-type says which.
+falling faster than the top squeezes the block before it lands). A model that has learned
+gravity prints 1.00. The particles are of the scene's one free (not kinematic) type unless
+--particle-type says which.
 """
 
 from __future__ import annotations
