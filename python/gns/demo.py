@@ -279,12 +279,13 @@ def demo(
     n_frames = chosen.frames or preset_frames
     # A shipped model steps over `stride` of the preset's frames; every row must (gns.report).
     shipped_name = SHIPPED_FOR_PRESET.get(preset)
-    shipped_path = shipped = None
+    shipped_path = shipped = shipped_scene = None
     stride = 1
     if shipped_name is not None:
         shipped_path = choose_checkpoint(model_location(shipped_name))
-        shipped = from_dict(Config, load_checkpoint(shipped_path)["config"])
-        stride = frame_stride(load_checkpoint(shipped_path)["scene"]["dt"], scene.frame_dt)
+        state = load_checkpoint(shipped_path)
+        shipped, shipped_scene = from_dict(Config, state["config"]), state["scene"]
+        stride = frame_stride(shipped_scene["dt"], scene.frame_dt)
     history = 6  # the model's C + 1 = 6 input frames (ModelConfig.velocity_history 5)
     # Every row (gns.report) and every training window (gns convert) reads each phase of the
     # stride as a trajectory of frames_at_stride frames; the fine-tuning's windows hold the
@@ -341,7 +342,8 @@ def demo(
         f"steps) from scratch for {scratch_minutes:g} min (at most {chosen.steps} steps each) "
         f"into {out}",
     )
-    # Rows of the report: (label, checkpoint file, validation record of best.pt or None).
+    # Rows of the report: {"label", "path" (checkpoint file), "record" (its validation, as
+    # best.pt's "best", or None when it was not chosen by one)}.
     rows: list[dict[str, Any]] = []
     trained: dict[str, dict[str, Any]] = {}
     if shipped is not None:
@@ -359,8 +361,7 @@ def demo(
         )
         # Step 0 of the fine-tuning is the shipped model's own validation (gns.train).
         first = _validated(out / "finetune")[0]
-        radius = load_checkpoint(shipped_path)["scene"]["radius"]
-        record = {"step": 0, **(better_validation(first, None, radius) or {})}
+        record = {"step": 0, **(better_validation(first, None, shipped_scene["radius"]) or {})}
         rows.append({"label": f"shipped {shipped_name}", "path": shipped_path, "record": record})
         best = load_checkpoint(out / "finetune" / "checkpoints" / "best.pt")["best"]
         if best["step"] == 0:  # no fine-tuned checkpoint beat it: show the last one, unchosen
@@ -389,7 +390,7 @@ def demo(
     _phase(3, f"rolling out the {n_test} test trajectories and writing the report")
     validated = [r for r in rows if r["record"] is not None]
     lead = rows.index(validated[headline(validated)]) if validated else len(rows) - 1
-    rows.insert(0, rows.pop(lead))  # first: the report's animation and VTK files show it
+    rows.insert(0, rows.pop(lead))  # the headline leads the table
     notes = [
         f"`gns demo` size {size!r}: {n_train} train / {n_valid} valid / {n_test} test "
         f"trajectories of preset {preset!r} (seed {seed}), {n_frames} frames each, dataset "
