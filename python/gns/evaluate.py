@@ -19,7 +19,9 @@ what is compared with what.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -181,6 +183,7 @@ def evaluate_rollouts(
     horizons: Sequence[int | None] = DEFAULT_HORIZONS,
     distribution_every: int = 1,
     bandwidth: float = 0.1,
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """Rollout metrics of the model, of the constant-velocity baseline and of the static one.
 
@@ -207,11 +210,21 @@ def evaluate_rollouts(
     outside_box, no errors. Means are over trajectories (of the per-trajectory ratios for the
     ratios), except outside_box, the worst case. A rollout that diverged has inf for mse@full,
     OT, MMD and the deposit figures; its file holds the ground truth only up to where it
-    diverged, so that trajectory's baselines and truth are scored on those frames.
+    diverged, so that trajectory's baselines and truth are scored on those frames. workers:
+    rollouts scored at once, in threads (default: one per CPU).
     """
     if not rollouts:
         raise ValueError("no rollouts to evaluate")
-    per_rollout = [_evaluate_one(r, horizons, distribution_every, bandwidth) for r in rollouts]
+    if workers is not None and (isinstance(workers, bool) or workers < 1):
+        raise ValueError(f"workers must be a whole number >= 1, got {workers!r}")
+    # One rollout a thread: exact OT (lapx), cdist and numpy release the GIL, so the rollouts'
+    # metrics run side by side on the cores (12 of eval's OT solves: 0.53 s on one thread, 0.26
+    # s on two). Each rollout's figures are computed as alone; map keeps their order.
+    threads = min(len(rollouts), workers or os.cpu_count() or 1)
+    with ThreadPoolExecutor(threads) as pool:
+        per_rollout = list(
+            pool.map(lambda r: _evaluate_one(r, horizons, distribution_every, bandwidth), rollouts)
+        )
     mean: dict[str, dict[str, float]] = {}
     for name in (*MODELS, "ground_truth"):
         entries = [entry[name] for entry in per_rollout if entry.get(name) is not None]
