@@ -87,7 +87,6 @@ import torch  # noqa: E402
 from gns.config import Config  # noqa: E402
 from gns.data import Trajectory, open_dataset  # noqa: E402
 from gns.data.windows import collate, trajectory_windows  # noqa: E402
-from gns.device import resolve_device  # noqa: E402
 from gns.model import EncodeProcessDecode, native_bf16  # noqa: E402
 from gns.rollout import TIMING_PARTS, rollout  # noqa: E402
 from gns.simulator import LearnedSimulator, Scene  # noqa: E402
@@ -95,7 +94,7 @@ from gns.train import TrainingStep, batch_tensors  # noqa: E402
 from lattice import lattice  # noqa: E402
 from torch import nn  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
-from torch_bench import machine_facts, synchronize  # noqa: E402
+from torch_bench import bench_device, machine_facts, synchronize  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -316,12 +315,7 @@ def cells(case: Case, variant: Variant, r: dict, peak: float, plain: dict | None
 
 
 def main() -> None:
-    if ARGS.threads is not None:
-        torch.set_num_threads(ARGS.threads)
-    try:
-        device = resolve_device(ARGS.device)
-    except ValueError as err:
-        raise SystemExit(f"step.py: {err}") from None
+    device = bench_device("step.py", ARGS.threads, ARGS.device)
     config = Config()
     print("\n".join(machine_facts(device)))
     keys = ARGS.variants or ["plain", "fast"] + (["bf16"] if native_bf16(device) else [])

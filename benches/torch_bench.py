@@ -1,12 +1,24 @@
-"""What the torch benchmarks (step.py, train.py) share: the machine's lines above their tables
-and the CUDA synchronisation around every timed part."""
+"""What the torch benchmarks (step.py, train.py) share: their threads and device, the machine's
+lines above their tables and the CUDA synchronisation around every timed part."""
 
 from __future__ import annotations
 
 import os
 
 import torch
+from gns.device import resolve_device
 from gns.machine import cpu_name
+
+
+def bench_device(script: str, threads: int | None, device: str) -> torch.device:
+    """Fix torch's CPU threads when asked and resolve --device; a device there is not ends the
+    benchmark `script` with its one-line error."""
+    if threads is not None:
+        torch.set_num_threads(threads)
+    try:
+        return resolve_device(device)
+    except ValueError as err:
+        raise SystemExit(f"{script}: {err}") from None
 
 
 def machine_facts(device: torch.device) -> list[str]:

@@ -67,11 +67,10 @@ from gns.config import Config, load_config  # noqa: E402
 from gns.data import Trajectory, open_dataset  # noqa: E402
 from gns.data.stride import at_frame_stride  # noqa: E402
 from gns.data.windows import WindowSampler  # noqa: E402
-from gns.device import resolve_device  # noqa: E402
 from gns.simulator import LearnedSimulator, Scene  # noqa: E402
 from gns.train import TrainingStep  # noqa: E402
 from lattice import lattice  # noqa: E402
-from torch_bench import machine_facts, synchronize  # noqa: E402
+from torch_bench import bench_device, machine_facts, synchronize  # noqa: E402
 
 # The stride of the shipped model's frames to the data's (its steps are 7.5 ms, the data's
 # frames 2.5 ms: models/sand2d-taichi/config.toml's header).
@@ -209,12 +208,7 @@ def cells(batch_size: int, r: dict) -> list[str]:
 
 
 def main() -> None:
-    if ARGS.threads is not None:
-        torch.set_num_threads(ARGS.threads)
-    try:
-        device = resolve_device(ARGS.device)
-    except ValueError as err:
-        raise SystemExit(f"train.py: {err}") from None
+    device = bench_device("train.py", ARGS.threads, ARGS.device)
     config = bench_config()
     found = sand_data(Path(ARGS.sand), config) if ARGS.sand else None
     name, scene, trajectories, statistics = found or generated_data(

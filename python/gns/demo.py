@@ -205,9 +205,10 @@ def _validated(run: Path) -> list[dict[str, float]]:
 def headline(candidates: list[dict[str, Any]]) -> int:
     """The index of the candidate ({"label", "record"}: best.pt's {"step", "value", "in_box"})
     that validated best: inside the box first, then the lowest validation rollout MSE
-    (gns.validation.better_validation's order); the first of equals."""
-    keys = [(not c["record"]["in_box"], c["record"]["value"]) for c in candidates]
-    return min(range(len(candidates)), key=keys.__getitem__)
+    (gns.validation.validation_rank); the first of equals."""
+    from gns.validation import validation_rank
+
+    return min(range(len(candidates)), key=lambda k: validation_rank(candidates[k]["record"]))
 
 
 def demo(
@@ -230,7 +231,7 @@ def demo(
     test) and frames override its values. The test split is what the report rolls out.
     """
     from gns.checkpoints import choose_checkpoint, load_checkpoint, model_location
-    from gns.config import Config, from_dict
+    from gns.config import Config, ModelConfig, from_dict
     from gns.data.convert import convert
     from gns.data.stride import frame_stride, frames_at_stride
     from gns.device import resolve_device
@@ -286,7 +287,9 @@ def demo(
         state = load_checkpoint(shipped_path)
         shipped, shipped_scene = from_dict(Config, state["config"]), state["scene"]
         stride = frame_stride(shipped_scene["dt"], scene.frame_dt)
-    history = 6  # the model's C + 1 = 6 input frames (ModelConfig.velocity_history 5)
+    # The input frames (C + 1) of every row: the shipped model's, and the scratch model's
+    # (demo_config keeps ModelConfig's default C).
+    history = (shipped.model if shipped is not None else ModelConfig()).velocity_history + 1
     # Every row (gns.report) and every training window (gns convert) reads each phase of the
     # stride as a trajectory of frames_at_stride frames; the fine-tuning's windows hold the
     # frames its pushforward rolls over too.

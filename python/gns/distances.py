@@ -124,6 +124,11 @@ def _rows_per_block(columns: int, arrays: int, memory_bytes: int) -> int:
     return max(1, memory_bytes // (8 * arrays * max(columns, 1)))
 
 
+def _on_torus(period: ArrayLike | None) -> bool:
+    """Whether `period` (gns.periodic) makes any axis periodic."""
+    return period is not None and bool(np.any(np.asarray(period) > 0))
+
+
 def _squared_distances(
     a: FloatArray, b: FloatArray, period: FloatArray | None = None
 ) -> FloatArray:
@@ -132,7 +137,7 @@ def _squared_distances(
     With a `period` (gns.periodic), the minimum image on its periodic axes: the torus.
     Without one, scipy's cdist: the same sum of squared coordinate differences, a few times
     faster than the loop below."""
-    if period is None or not np.any(np.asarray(period) > 0):
+    if not _on_torus(period):
         out: FloatArray = cdist(a, b, "sqeuclidean")
         return out
     out = np.zeros((a.shape[0], b.shape[0]))
@@ -236,7 +241,7 @@ def _assignment_cost(xs: FloatArray, ys: FloatArray, period: FloatArray | None) 
     column at once. The figure itself is the mean of the original squared distances over the
     assignment found. On a torus (`period`) the squared distances are solved as they are.
     """
-    if period is not None and np.any(np.asarray(period) > 0):
+    if _on_torus(period):
         solved = _squared_distances(xs, ys, period)
     else:
         xc, yc = xs - xs.mean(axis=0), ys - ys.mean(axis=0)

@@ -18,7 +18,13 @@ from gns.config import TrainConfig
 from gns.data import at_frame_stride, open_dataset
 from gns.simulator import LearnedSimulator
 
-__all__ = ["better_validation", "stays_in_box", "validate", "validation_trajectories"]
+__all__ = [
+    "better_validation",
+    "stays_in_box",
+    "validate",
+    "validation_rank",
+    "validation_trajectories",
+]
 
 
 def validate(
@@ -98,11 +104,15 @@ def better_validation(
     if key not in figures:
         return None
     record = {"value": figures[key], "in_box": stays_in_box(figures, radius)}
-    if best is None:
-        return record
-    if (not record["in_box"], record["value"]) < (not best.get("in_box", False), best["value"]):
+    if best is None or validation_rank(record) < validation_rank(best):
         return record
     return None
+
+
+def validation_rank(record: dict[str, Any]) -> tuple[bool, float]:
+    """The sort key of a validation record ({"value", "in_box"}): lower is better, in the box
+    before out of it, then the lower value (better_validation's order)."""
+    return (not record.get("in_box", False), record["value"])
 
 
 def validation_trajectories(
