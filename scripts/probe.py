@@ -3,6 +3,7 @@
     python scripts/probe.py reach MODEL [MODEL ...] [--untrained] [--variant KEY=VALUE ...]
     python scripts/probe.py floor MODEL [MODEL ...] [--shift 1.0]
     python scripts/probe.py landing MODEL DATA SPLIT [--trajectories 0 1 ...] [--bands 3]
+    python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block of reach and
 floor is a lattice (`--spacing`, `--size` wide; the defaults are sand2d-taichi's block and
@@ -23,6 +24,10 @@ context where the model takes one.
   from the truth's; the mean vertical acceleration (g, up positive) and neighbour count of
   the lowest, middle and highest third of the particles (by height in the first frame)
   around the landing (the first frame at which the lowest third decelerates by 3 g).
+- rest: one step from each trajectory's last C + 1 frames (a settled pile), the predicted
+  vertical acceleration (g, up positive) by height above the floor (below R, 1-3 R, 3-6 R,
+  above 6 R): the truth's is about 0, and a model that pushes the pile down by a tenth of g
+  sinks it 0.5 m in a second of rollout unless the floor holds it.
 """
 
 from __future__ import annotations
@@ -165,6 +170,51 @@ def landing(args) -> None:
 
 
 @torch.no_grad()
+def rest(args) -> None:
+    dataset = gns.data.open_dataset(args.data, args.split)
+    edges = (1.0, 3.0, 6.0)
+    names = ["below R", "1-3 R", "3-6 R", "above 6 R"]
+    print(f"one step from the last frames of each {args.split} trajectory; acceleration in g, up")
+    print("positive: mean over trajectories (their range)")
+    print("| model | " + " | ".join(names) + " | truth, largest |")
+    print("|---" * (len(names) + 2) + "|")
+    for name in args.models:
+        simulator = gns.load_simulator(name).eval()
+        if not simulator.scene.walls or simulator.scene.bounds is None:
+            raise ValueError(f"{name} has no walls: there is no floor to rest on")
+        stride = simulator.frame_stride_for(dataset.metadata)
+        history = simulator.config.model.velocity_history + 1
+        floor = simulator.scene.bounds[1][0]
+        ours, truth = [], []
+        for trajectory in dataset:
+            trajectory = at_frame_stride(trajectory, stride)
+            frames = trajectory.positions[-history:].transpose(1, 0, 2).copy()
+            context = trajectory.step_context
+            predicted = simulator.predict_positions(
+                torch.from_numpy(frames),
+                torch.from_numpy(trajectory.particle_type),
+                context=None if context is None else torch.from_numpy(context[-1:]).float(),
+            )
+            free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
+            r = probes.rest_by_height(
+                frames[free],
+                predicted.double().numpy()[free],
+                floor,
+                simulator.scene.radius,
+                probes.g_step(simulator),
+                edges,
+            )
+            ours.append(r["acceleration"])
+            truth.append(r["truth"])
+        a, t = np.array(ours), np.array(truth)
+        cells = [
+            f"{np.nanmean(a[:, b]):+.3f} ({np.nanmin(a[:, b]):+.2f} to {np.nanmax(a[:, b]):+.2f})"
+            for b in range(a.shape[1])
+        ]
+        print(f"| {name} | " + " | ".join(cells) + f" | {np.nanmax(np.abs(t)):.3f} |")
+
+
+@torch.no_grad()
 def one_step_frames(simulator, trajectory, history: int) -> np.ndarray:
     """(T - history, N, D): each frame from t = history on, predicted from the truth's
     frames before it."""
@@ -199,6 +249,11 @@ def main() -> None:
     p.add_argument("--trajectories", type=int, nargs="*")
     p.add_argument("--bands", type=int, default=3)
     p.set_defaults(run=landing)
+    p = probes_.add_parser("rest")
+    p.add_argument("models", nargs="+")
+    p.add_argument("--data", required=True)
+    p.add_argument("--split", default="valid")
+    p.set_defaults(run=rest)
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:

@@ -204,6 +204,33 @@ def test_height_bands_split_the_particles_into_equal_thirds_by_height():
     assert frame[band == 1, 1].max() < frame[band == 2, 1].min()
 
 
+def test_rest_by_height_bins_each_particle_by_its_height_above_the_floor():
+    floor = 0.1
+    # Five particles at 0.5, 2, 2.5, 4 and 10 radii above the floor and one 0.2 R under it,
+    # at rest in the history; the "model" pushes each by a known number of g.
+    heights = np.array([0.5, 2.0, 2.5, 4.0, 10.0, -0.2])
+    frame = np.stack([np.linspace(0.3, 0.6, 6), floor + heights * RADIUS], axis=1)
+    history = np.repeat(frame[:, None], 6, axis=1)
+    pushed = np.array([0.3, -0.1, -0.3, 2.0, -1.0, 0.5])
+    predicted = frame + np.stack([np.zeros(6), pushed * G], axis=1)
+    r = probes.rest_by_height(history, predicted, floor, RADIUS, G, edges=(1.0, 3.0, 6.0, 20.0))
+    np.testing.assert_array_equal(r["count"], [2, 2, 1, 1, 0])
+    np.testing.assert_allclose(r["acceleration"][:4], [0.4, -0.2, 2.0, -1.0], rtol=1e-9)
+    assert np.isnan(r["acceleration"][4])  # nobody above 20 R
+    np.testing.assert_allclose(r["truth"][:4], 0.0, atol=1e-12)
+    # A history that falls at g reads -1 in the truth's column, at every height.
+    falling = probes.block_history(frame, 6, G)
+    r = probes.rest_by_height(falling, predicted, floor, RADIUS, G, edges=(1.0, 3.0, 6.0, 20.0))
+    np.testing.assert_allclose(r["truth"][:4], -1.0, rtol=1e-9)
+
+
+def test_rest_by_height_refuses_frames_of_the_wrong_shape():
+    with pytest.raises(ValueError, match=r"history must be \(N, C \+ 1 >= 3, 2\)"):
+        probes.rest_by_height(np.zeros((4, 2, 2)), np.zeros((4, 2)), 0.0, RADIUS, G)
+    with pytest.raises(ValueError, match=r"predicted must be \(4, 2\)"):
+        probes.rest_by_height(np.zeros((4, 6, 2)), np.zeros((3, 2)), 0.0, RADIUS, G)
+
+
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "probe.py"
 
 
@@ -226,3 +253,6 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     assert [line.split("|")[1].strip() for line in floor[3:]] == ["at rest", "landing"], floor
     landing = run_probe("landing", str(run), str(native), "test", "--trajectories", "0")
     assert re.match(rf"{re.escape(str(run))} on test trajectory 0: ", landing[0]), landing
+    rest = run_probe("rest", str(run), "--data", str(native), "--split", "test")
+    assert rest[2].startswith("| model | below R | 1-3 R | 3-6 R | above 6 R |"), rest
+    assert rest[4].startswith(f"| {run} | ") and rest[4].count("|") == 7, rest

@@ -10,6 +10,9 @@ scripts/probe.py run them):
                       above it: how far up a block the floor is seen
     landing_timeline  acceleration and density by height band through a block's landing,
                       the truth against the model's one-step predictions and its rollout
+    rest_by_height    one step of a settled pile from the truth's last frames: the
+                      acceleration it predicts by height above the floor (the truth: 0); a
+                      model that pushes a pile down sinks it into the floor over a rollout
 
 Positions are (N, C + 1, D) histories, most recent last, as LearnedSimulator takes them.
 Accelerations are in units of g per step^2 (g = 9.81 m/s^2 times dt^2), positive upwards, so
@@ -45,6 +48,7 @@ __all__ = [
     "neighbour_counts",
     "probe_inputs",
     "reach_by_hop",
+    "rest_by_height",
     "untrained_copy",
 ]
 
@@ -322,3 +326,44 @@ def landing_timeline(
         rows["density_rollout"].append(np.broadcast_to(density, (bands,)))
     result.update({k: np.array(v) for k, v in rows.items()})
     return result
+
+
+# ---------------------------------------------------------------------------------- rest
+
+
+def rest_by_height(
+    history: np.ndarray,
+    predicted: np.ndarray,
+    floor: float,
+    radius: float,
+    g: float,
+    edges: Sequence[float] = (1.0, 3.0, 6.0),
+) -> dict[str, np.ndarray]:
+    """The vertical acceleration of one step, by height above the floor.
+
+    history: (N, C + 1, 2) the frames the step was predicted from (a settled pile's last
+    frames), predicted: (N, 2) the next frame. Heights above `floor` (the last frame's y minus
+    floor, in radii) are binned at `edges`: [0, e0), [e0, e1), ..., [e_last, inf); a particle
+    below the floor counts in the first bin. Returns "acceleration" (bins,) each bin's mean
+    predicted acceleration in g (positive up; NaN for an empty bin), "truth" (bins,) the same
+    of the acceleration in the history's last three frames (a settled pile's: about 0), and
+    "count" (bins,) its particles.
+    """
+    history = np.asarray(history, dtype=np.float64)
+    predicted = np.asarray(predicted, dtype=np.float64)
+    if history.ndim != 3 or history.shape[1] < 3 or history.shape[2] != 2:
+        raise ValueError(f"history must be (N, C + 1 >= 3, 2), got {history.shape}")
+    if predicted.shape != (len(history), 2):
+        raise ValueError(f"predicted must be ({len(history)}, 2), got {predicted.shape}")
+    y = history[:, :, 1]
+    ours = (predicted[:, 1] - 2 * y[:, -1] + y[:, -2]) / g
+    truth = (y[:, -1] - 2 * y[:, -2] + y[:, -3]) / g
+    bins = np.digitize((y[:, -1] - floor) / radius, np.asarray(edges, dtype=np.float64))
+    count = np.bincount(bins, minlength=len(edges) + 1)
+
+    def mean(values: np.ndarray) -> np.ndarray:
+        total = np.bincount(bins, weights=values, minlength=len(edges) + 1)
+        with np.errstate(invalid="ignore"):
+            return total / count
+
+    return {"acceleration": mean(ours), "truth": mean(truth), "count": count}
