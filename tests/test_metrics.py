@@ -24,6 +24,7 @@ from gns.deposit import (
     deposit,
     deposit_ratios,
     front_positions,
+    pile_base,
     pile_floor,
     pile_height,
     ratio_of,
@@ -697,6 +698,24 @@ def test_pile_height_is_the_second_highest_row_above_the_floor():
     assert pile_height(column, None, 0.0) == pytest.approx(9.9, abs=1e-12)
 
 
+def test_pile_base_is_the_second_lowest_row_above_the_floor():
+    # Rows at y = 0.1, 0.11, ..., 1.1: the 1st percentile is the second row, y = 0.11; the
+    # same pile lifted 0.05 off its floor reads the gap.
+    pile = lattice(101, 101, 0.01, origin=(0.2, 0.1))
+    assert pile_base(pile, None, 0.1) == pytest.approx(0.01, abs=1e-12)
+    assert pile_base(pile + [0.0, 0.05], None, 0.1) == pytest.approx(0.06, abs=1e-12)
+    # A column of 11 at y = 0 ... 10: 0.1 of the way from 0 to 1; one particle under the floor
+    # alone does not move it far, and masked out not at all.
+    column = np.stack([np.zeros(11), np.arange(11.0)], axis=1)
+    assert pile_base(column, None, 0.0) == pytest.approx(0.1, abs=1e-12)
+    sunk = np.vstack([column, [[0.0, -5.0]]])
+    assert pile_base(sunk, np.arange(12) < 11, 0.0) == pytest.approx(0.1, abs=1e-12)
+    assert pile_base(sunk, None, 0.0) == pytest.approx(-5.0 + 0.11 * 5.0, abs=1e-12)
+    with pytest.raises(ValueError, match="floor must be a finite number"):
+        pile_base(column, None, math.inf)
+    assert pile_base(np.vstack([column, [[np.nan, 0.0]]]), None, 0.0, nonfinite="inf") == math.inf
+
+
 def test_pile_floor_is_the_box_floor_or_the_lowest_particle_of_frame_0():
     frame = np.array([[0.5, 0.3], [0.6, 0.12], [0.2, 0.7]])
     assert pile_floor([[0.0, 1.0], [0.1, 0.9]], frame) == 0.1
@@ -746,6 +765,7 @@ def test_deposit_of_a_lattice_and_of_it_stretched_against_it():
     assert ours["neighbours"] == pytest.approx(2 * 101 * 199 / n, rel=1e-12)
     assert ours["runout"] == pytest.approx(1.96, abs=1e-12)
     assert ours["pile_height"] == pytest.approx(0.594, abs=1e-12)
+    assert ours["pile_base"] == pytest.approx(0.006, abs=1e-12)  # the second row, squeezed
     np.testing.assert_allclose(ours["front_x_p1"], [0.01, 0.02], atol=1e-12)
     np.testing.assert_allclose(ours["front_x_p99"], [0.99, 1.98], atol=1e-12)
     ratios = deposit_ratios(ours, truth)

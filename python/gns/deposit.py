@@ -5,7 +5,8 @@ and how high does it pile. All three are robust percentiles (1st and 99th, linea
 interpolation between order statistics) over the particles a mask selects, in position units:
 `runout_extent` (the 99th minus the 1st percentile of x in one frame: how wide the deposit is),
 `front_positions` (those two percentiles of x in every frame: how the fronts advance) and
-`pile_height` (the 99th percentile of y in one frame above a floor, `pile_floor`). They need no
+`pile_height` (the 99th percentile of y in one frame above a floor, `pile_floor`), with
+`pile_base` (the 1st percentile: a pile resting on the floor reads about 0). They need no
 particle correspondence, so they compare any two simulators of the same scene. `deposit` gathers
 them for a rollout's last frame with `mean_neighbours` (how densely it packs; the radius search
 is the Rust core's), and `deposit_ratios` sets them against the ground truth's.
@@ -41,6 +42,7 @@ __all__ = [
     "deposit_ratios",
     "front_positions",
     "mean_neighbours",
+    "pile_base",
     "pile_floor",
     "pile_height",
     "ratio_of",
@@ -144,6 +146,25 @@ def pile_height(
     return float(_percentiles(y)[1] - floor)
 
 
+def pile_base(
+    positions: ArrayLike,
+    mask: ArrayLike | None,
+    floor: float,
+    *,
+    nonfinite: Nonfinite = "raise",
+) -> float:
+    """Where the deposit's bottom is: the 1st percentile of y over the selected particles of
+    one frame, minus `floor`, as `pile_height` takes the 99th. Sand resting on the floor reads
+    about 0 (a fraction of the particle spacing); a model that holds its pile up off the floor
+    reads the gap, which `pile_height` alone would count as height."""
+    if not math.isfinite(floor):
+        raise ValueError(f"floor must be a finite number, got {floor}")
+    y = _selected_frame("positions", positions, mask, HEIGHT_AXIS, nonfinite)
+    if y is None:
+        return math.inf
+    return float(_percentiles(y)[0] - floor)
+
+
 def pile_floor(bounds: Sequence[Sequence[float]] | None, first_frame: ArrayLike) -> float:
     """The floor `pile_height` measures from: the lower y bound of the scene's box, bounds
     (D pairs (lo, hi)), when there is one; otherwise the lowest y of any particle of
@@ -164,6 +185,7 @@ def pile_floor(bounds: Sequence[Sequence[float]] | None, first_frame: ArrayLike)
 DEPOSIT_FIGURES = (
     "runout",
     "pile_height",
+    "pile_base",
     "neighbours",
     "runout_ratio",
     "height_ratio",
@@ -189,6 +211,8 @@ def deposit(
       runout        runout_extent: the 99th minus the 1st percentile of x, how wide it lies
       pile_height   pile_height: the 99th percentile of y minus `floor` (see
                     pile_floor); only with a floor and D >= 2
+      pile_base     pile_base: the 1st percentile of y minus `floor` (about 0 for sand
+                    resting on the floor); as pile_height
       neighbours    mean_neighbours: other particles within `radius` per particle (minimum
                     image on `periodic` axes of `bounds`); only with a radius
       front_x_p1, front_x_p99
@@ -205,6 +229,7 @@ def deposit(
     figures: dict[str, Any] = {"runout": runout_extent(last, keep, nonfinite="inf")}
     if floor is not None and frames.shape[-1] > HEIGHT_AXIS:
         figures["pile_height"] = pile_height(last, keep, floor, nonfinite="inf")
+        figures["pile_base"] = pile_base(last, keep, floor, nonfinite="inf")
     if radius is not None:
         finite = bool(np.isfinite(last[keep]).all())
         packed = mean_neighbours(last[keep], radius, bounds, periodic) if finite else math.inf

@@ -196,12 +196,12 @@ def evaluate_rollouts(
       mse@h, mse@full, ot_mean, mmd_mean   errors against the ground truth (gns.metrics)
       finite, outside_box                  1 if every frame is finite; how far the farthest
                                            particle left the box (with bounds)
-      runout, pile_height, neighbours      the last frame's deposit (gns.deposit.deposit): the
-                                           1st-to-99th percentile extent of x, the 99th
-                                           percentile of y
-                                           above the floor (the box's lower y bound, else the
-                                           truth's lowest y at frame 0), the mean neighbour
-                                           count within the connectivity radius
+      runout, pile_height, pile_base, neighbours
+                                           the last frame's deposit (gns.deposit.deposit): the
+                                           1st-to-99th percentile extent of x, the 99th and the
+                                           1st percentile of y above the floor (the box's lower
+                                           y bound, else the truth's lowest y at frame 0), the
+                                           mean neighbour count within the connectivity radius
       runout_ratio, height_ratio, density_ratio
                                            those three over the ground truth's (1 is right)
       mse, front_x_p1, front_x_p99         per-frame MSE and the 1st and 99th percentiles of x
@@ -444,8 +444,9 @@ def summary_table(mean: dict[str, dict[str, float]]) -> str:
             ratios.append(f"{ratio:>{width}}")
         lines.append(f"{key:<16} {' '.join(cells)} {' '.join(ratios)}")
     lines.append(
-        "last frame: runout = 99th - 1st percentile of x, pile_height = 99th percentile of y "
-        "above the floor,\nneighbours within the connectivity radius; *_ratio: over the truth's "
+        "last frame: runout = 99th - 1st percentile of x, pile_height and pile_base = 99th and "
+        "1st percentile\nof y above the floor, neighbours within the connectivity radius; "
+        "*_ratio: over the truth's "
         "(1 is right); cv/model, static/model:\nthe baseline's error over the model's (above "
         "1: the model is better)"
     )

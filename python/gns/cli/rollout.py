@@ -78,6 +78,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "for the model, both baselines and the ground truth: runout, the 99th minus the 1st "
         "percentile of x (how wide the sand lies); pile_height, the 99th percentile of y minus "
         "the floor (the box's lower y bound, else the ground truth's lowest y at frame 0); "
+        "pile_base, the 1st percentile of y minus the floor (sand resting on it: about 0); "
         "neighbours, the mean count of other particles within the connectivity radius; and "
         "runout_ratio, height_ratio, density_ratio, each over the ground truth's (1 is right). "
         "Percentiles interpolate linearly between sorted values. The fronts (1st and 99th "
