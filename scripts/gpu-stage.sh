@@ -133,11 +133,11 @@ cp "$work/model/model.pt" "$out/model.pt"
 cp "$(ls "$runs/checkpoints"/step_*.pt | tail -1)" "$out/last.pt"
 cp "$runs/train.csv" "$runs/valid.csv" "$out/"
 cp "$work/model/eval_test.json" "$out/eval_test.json"
-"$python" - "$out" "$runs" "$device" "$trained" "$minutes" "${commands[@]}" <<'EOF'
+"$python" - "$out" "$device" "$trained" "$minutes" "${commands[@]}" <<'EOF'
 import json, os, sys
 import torch
 
-out, runs, device, seconds, minutes, *commands = sys.argv[1:]
+out, device, seconds, minutes, *commands = sys.argv[1:]
 last = torch.load(os.path.join(out, "last.pt"), map_location="cpu", weights_only=False)
 train = last["config"]["train"]
 card = torch.cuda.get_device_name() if torch.cuda.is_available() and device != "cpu" else "cpu"

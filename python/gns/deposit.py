@@ -125,6 +125,20 @@ def front_positions(
     return fronts
 
 
+def _above_floor(
+    positions: ArrayLike, mask: ArrayLike | None, floor: float, nonfinite: Nonfinite
+) -> tuple[float, float]:
+    """The 1st and 99th percentiles of y (axis 1) of the selected particles of one frame
+    minus `floor`; (inf, inf) for a non-finite frame under nonfinite="inf"."""
+    if not math.isfinite(floor):
+        raise ValueError(f"floor must be a finite number, got {floor}")
+    y = _selected_frame("positions", positions, mask, HEIGHT_AXIS, nonfinite)
+    if y is None:
+        return math.inf, math.inf
+    low, high = _percentiles(y) - floor
+    return float(low), float(high)
+
+
 def pile_height(
     positions: ArrayLike,
     mask: ArrayLike | None,
@@ -138,12 +152,7 @@ def pile_height(
     particles highest up (grains thrown loose, a few riding on top) do not count. A selected
     particle with a non-finite position raises ValueError, or with nonfinite="inf" gives inf.
     """
-    if not math.isfinite(floor):
-        raise ValueError(f"floor must be a finite number, got {floor}")
-    y = _selected_frame("positions", positions, mask, HEIGHT_AXIS, nonfinite)
-    if y is None:
-        return math.inf
-    return float(_percentiles(y)[1] - floor)
+    return _above_floor(positions, mask, floor, nonfinite)[1]
 
 
 def pile_base(
@@ -157,12 +166,7 @@ def pile_base(
     one frame, minus `floor`, as `pile_height` takes the 99th. Sand resting on the floor reads
     about 0 (a fraction of the particle spacing); a model that holds its pile up off the floor
     reads the gap, which `pile_height` alone would count as height."""
-    if not math.isfinite(floor):
-        raise ValueError(f"floor must be a finite number, got {floor}")
-    y = _selected_frame("positions", positions, mask, HEIGHT_AXIS, nonfinite)
-    if y is None:
-        return math.inf
-    return float(_percentiles(y)[0] - floor)
+    return _above_floor(positions, mask, floor, nonfinite)[0]
 
 
 def pile_floor(bounds: Sequence[Sequence[float]] | None, first_frame: ArrayLike) -> float:
