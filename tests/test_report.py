@@ -332,6 +332,37 @@ def test_a_diverged_learned_rollout_is_reported_as_diverged(generated, monkeypat
         assert panels[t][0] == "diverged at frame 9" and np.allclose(panels[t][1], last)
 
 
+def test_a_model_with_enforced_walls_says_so_with_its_corrections(generated, tmp_path):
+    from gns.checkpoints import export_model
+
+    export_model(generated / "run", tmp_path / "walled", enforce_walls=True)
+    result = report(
+        tmp_path / "walled",
+        generated / "data",
+        out=tmp_path / "report",
+        mpm=["none"],
+        every=4,
+        animation_frames=0,
+        vtk_every=0,
+        progress=False,
+    )
+    (row,) = [r for r in result.rows if r.method == "GNS"]
+    saved = [load_rollout(f) for f in (result.out / "rollouts").glob("*/rollout_test_*.npz")]
+    assert len(saved) == 2 and all(r.metadata["enforce_walls"] for r in saved)
+    moved = sum(r.metadata["wall_corrections"] for r in saved)
+    assert f"walls enforced: {moved} particle-steps put back on a wall" in row.setting
+    assert row.status == "ok" and "walls" not in row.short  # the figures' label stays short
+    assert moved > 0  # the untrained model pushes particles through the walls
+    # On the walls as the rollout's float32 holds them.
+    bounds = np.array(saved[0].metadata["bounds"], dtype=np.float32)
+    for r in saved:
+        free = r.particle_type != 3
+        inside = (r.predicted_rollout[:, free] >= bounds[:, 0]) & (
+            r.predicted_rollout[:, free] <= bounds[:, 1]
+        )
+        assert inside.all()
+
+
 def test_datasets_not_made_by_generate_get_no_mpm_rows_and_say_why(tmp_path, one_thread):
     rng = np.random.default_rng(0)
     items = [random_walk(rng, 12, 20, key=k) for k in range(2)]

@@ -12,6 +12,7 @@ The package ships trained ones in gns/models/NAME (SHIPPED_MODELS), loadable by 
 
 from __future__ import annotations
 
+import copy
 import os
 import sys
 import zipfile
@@ -274,6 +275,7 @@ def export_model(
     out: str | os.PathLike[str],
     checkpoint: str = "auto",
     average: int = 1,
+    enforce_walls: bool | None = None,
 ) -> dict[str, Any]:
     """Write the weights a rollout needs to out/model.pt (out is created; an existing model.pt
     is replaced atomically) and return the state written.
@@ -281,7 +283,9 @@ def export_model(
     average: 1 exports the checkpoint `checkpoint` of `run` (see choose_checkpoint); N > 1
     averages the parameters of the run's last N step_*.pt (equal weights), which evens out the
     swings between neighbouring checkpoints; buffers (the normalisation statistics, the scene's
-    constants) are the newest checkpoint's. The state records the steps averaged."""
+    constants) are the newest checkpoint's. The state records the steps averaged.
+    enforce_walls: sets the exported config's scene.enforce_walls (see gns.rollout); None keeps
+    the run's."""
     if isinstance(average, bool) or not isinstance(average, int) or average < 1:
         raise ValueError(f"average must be an integer >= 1, got {average!r}")
     run = Path(run)
@@ -310,6 +314,10 @@ def export_model(
             model[name] = torch.stack([s["model"][name] for s in sources]).mean(dim=0)
         exported["model"] = model
         exported["averaged_steps"] = [int(s["step"]) for s in sources]
+    if enforce_walls is not None:
+        config = copy.deepcopy(exported["config"])
+        config["scene"]["enforce_walls"] = bool(enforce_walls)
+        exported["config"] = config
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     save_checkpoint(folder / MODEL_FILE, exported)

@@ -306,6 +306,11 @@ class SceneConfig:
         "obstacles", as `gns generate` writes for ramps) as D node features; None: when the
         dataset has obstacles.
     obstacle_clip: how many radii away an obstacle is seen; None takes the wall clip.
+    enforce_walls: in rollouts (validation's among them), put every free particle that a step
+        takes past a wall (the bounds of a non-periodic axis) back on it, as a simulator's
+        walls do; each correction is counted in the rollout's metadata (gns.rollout). Off, the
+        paper's way: the network alone keeps the sand in the box. Training targets are the
+        data's either way.
     """
 
     radius: float | None = None
@@ -317,6 +322,7 @@ class SceneConfig:
     wall_clip: float | None = None
     obstacles: bool | None = None
     obstacle_clip: float | None = None
+    enforce_walls: bool = False
 
     def __post_init__(self) -> None:
         for name in ("radius", "wall_clip", "obstacle_clip"):

@@ -206,11 +206,15 @@ def evaluate_rollouts(
                                            those three over the ground truth's (1 is right)
       mse, front_x_p1, front_x_p99         per-frame MSE and the 1st and 99th percentiles of x
                                            (the fronts) of every predicted frame
+      wall_corrections, wall_correction_max
+                                           the model's, when its rollout enforced the walls:
+                                           particle-steps put back on a wall, the largest move
     The "ground_truth" entry has the deposit figures (its ratios are 1), the fronts and
     outside_box, no errors. Means are over trajectories (of the per-trajectory ratios for the
-    ratios), except outside_box, the worst case. A rollout that diverged has inf for mse@full,
-    OT, MMD and the deposit figures; its file holds the ground truth only up to where it
-    diverged, so that trajectory's baselines and truth are scored on those frames. workers:
+    ratios), except outside_box and wall_correction_max, the worst case. A rollout that
+    diverged has inf for mse@full, OT, MMD and the deposit figures; its file holds the ground
+    truth only up to where it diverged, so that trajectory's baselines and truth are scored on
+    those frames. workers:
     rollouts scored at once, in threads (default: one per CPU).
     """
     if not rollouts:
@@ -236,8 +240,14 @@ def evaluate_rollouts(
             # A diverged model rollout lacks the later horizons: they count as infinitely wrong.
             values = [e.get(key, np.inf) for e in entries]
             # The worst case, not the mean, is what "inside the box" must mean.
-            mean[name][key] = float(np.max(values) if key == "outside_box" else np.mean(values))
+            mean[name][key] = float(np.max(values) if key in WORST_CASE else np.mean(values))
     return {"trajectories": per_rollout, "mean": mean}
+
+
+# What a rollout with the walls enforced records of them (gns.rollout), kept in its figures.
+WALL_CORRECTIONS = ("wall_corrections", "wall_correction_max")
+# Figures whose summary over trajectories is the worst case, not the mean.
+WORST_CASE = ("outside_box", "wall_correction_max")
 
 
 def _evaluate_one(
@@ -307,6 +317,8 @@ def _evaluate_one(
         scalars["finite"] = float(finite)
         if bounds is not None:
             scalars["outside_box"] = outside_box(predicted, bounds) if finite else np.inf
+        if name == "model" and r.metadata.get("enforce_walls"):
+            scalars.update({k: float(r.metadata[k]) for k in WALL_CORRECTIONS})
         entry[name] = {**scalars, **figures, "mse": metrics["mse"].tolist()}
     return entry
 
@@ -427,7 +439,8 @@ def summary_table(mean: dict[str, dict[str, float]]) -> str:
     keys = list(dict.fromkeys(k for name in names for k in mean.get(name, {})))
     keys = [k for k in keys if k != "finite"] + ["finite"]
     headings = [f"{SUMMARY_COLUMNS[n]:>{max(12, len(SUMMARY_COLUMNS[n]))}}" for n in names]
-    lines = [f"{'metric':<16} {' '.join(headings)} {'cv/model':>9} {'static/model':>12}"]
+    key_width = max(16, *map(len, keys))
+    lines = [f"{'metric':<{key_width}} {' '.join(headings)} {'cv/model':>9} {'static/model':>12}"]
     for key in keys:
         values = [mean.get(name, {}).get(key) for name in names]
         cells = [
@@ -442,7 +455,7 @@ def summary_table(mean: dict[str, dict[str, float]]) -> str:
             if error and baseline is not None and model and math.isfinite(model):
                 ratio = f"{baseline / model:.3g}"
             ratios.append(f"{ratio:>{width}}")
-        lines.append(f"{key:<16} {' '.join(cells)} {' '.join(ratios)}")
+        lines.append(f"{key:<{key_width}} {' '.join(cells)} {' '.join(ratios)}")
     lines.append(
         "last frame: runout = 99th - 1st percentile of x, pile_height and pile_base = 99th and "
         "1st percentile\nof y above the floor, neighbours within the connectivity radius; "

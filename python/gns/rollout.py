@@ -10,10 +10,15 @@
 Every step is LearnedSimulator.predict_positions, timed in the four parts it marks: "graph"
 (the Rust radius graph), "features" (the rest of the preprocess), "model" (the network:
 EncodeProcessDecode or CConv) and "integration" (decoder postprocess, i.e. de-normalisation and
-the Euler update, plus the kinematic override done here).
+the Euler update, plus the walls and the kinematic override done here).
 
 A non-finite prediction stops the rollout with `RolloutDiverged`, which carries the finite part;
 NaN never travels on into later steps, metrics or files.
+
+With enforce_walls (the model's config.scene.enforce_walls unless given), a free particle that a
+step takes past a wall is put back on it, and the rollout's metadata counts what that changed
+("wall_corrections": particle-steps moved, "wall_correction_max": the largest distance moved),
+so a model kept in the box this way is never mistaken for one that stays there by itself.
 
 How the steps run is measured, not assumed: torch's CPU thread count is chosen by timing the
 steps (gns.threads; fixed when the user fixed it), and a model of precision "auto" runs in bf16
@@ -182,6 +187,18 @@ def _domain(simulator: LearnedSimulator, first_frame: np.ndarray) -> tuple[Tenso
     else:
         lo, hi = first_frame.min(axis=0).astype(np.float64), first_frame.max(axis=0)
     return torch.from_numpy(lo), torch.from_numpy(np.asarray(hi, dtype=np.float64))
+
+
+def _walls(simulator: LearnedSimulator) -> tuple[Tensor, Tensor]:
+    """(lo, hi) per axis of the walls a rollout enforces: the scene's bounds on non-periodic
+    axes, -inf/inf on periodic ones (they wrap instead)."""
+    scene = simulator.scene
+    if scene.bounds is None:
+        raise ValueError("enforce_walls needs the scene's bounds, and this scene has none")
+    sides = list(zip(scene.bounds, scene.periodic, strict=True))
+    lo = [-math.inf if periodic else low for (low, _), periodic in sides]
+    hi = [math.inf if periodic else high for (_, high), periodic in sides]
+    return torch.tensor(lo, dtype=torch.float64), torch.tensor(hi, dtype=torch.float64)
 
 
 def _listed(indices: np.ndarray, limit: int = 10) -> str:
@@ -359,6 +376,7 @@ def rollout(
     device: torch.device | str | None = None,
     metadata: Mapping[str, Any] | None = None,
     escape_distance: float | None = 1.0,
+    enforce_walls: bool | None = None,
 ) -> Rollout:
     """Roll the simulator out from the first C + 1 frames of `trajectory`.
 
@@ -375,6 +393,10 @@ def rollout(
         frame's bounding box) than this many times the domain's longest side is taken as
         divergence; None: never. Positions that far off are garbage, and the model would only
         go on feeding them to the graph and the next step.
+    enforce_walls: put every free particle that a step takes past a wall (the scene's bounds on
+        a non-periodic axis) back on it before the next step; metadata["wall_corrections"]
+        counts the particle-steps moved and metadata["wall_correction_max"] the largest
+        distance moved. None: the simulator's config.scene.enforce_walls.
 
     Step t is `simulator.predict_positions` of frames t ... t + C (particle-major,
     (N, C + 1, D)), the step context of frame t + C (the last input frame, as training windows
@@ -400,6 +422,9 @@ def rollout(
     kinematic = simulator.scene.kinematic_mask(particle_type)
     num_kinematic = int(kinematic.sum())
     num_steps = _check_num_steps(num_steps, trajectory, history, num_kinematic)
+    if enforce_walls is None:
+        enforce_walls = simulator.config.scene.enforce_walls
+    walls = _walls(simulator) if enforce_walls else None
     if trajectory.dim != simulator.scene.dim:
         raise ValueError(
             f"the trajectory is {trajectory.dim}D but the simulator's scene is "
@@ -439,7 +464,13 @@ def rollout(
     seconds = np.zeros((len(TIMING_PARTS), num_steps), dtype=np.float64)
     now = _clock(device)
     run_metadata = _run_metadata(simulator, trajectory, num_steps, num_kinematic, device, dtype)
+    run_metadata["enforce_walls"] = bool(enforce_walls)
     run_metadata.update(metadata or {})
+    if walls is not None:
+        walls = (walls[0].to(device, dtype), walls[1].to(device, dtype))
+    # What the walls changed, summed on the device (read once, at the end).
+    corrected = torch.zeros((), dtype=torch.int64, device=device)
+    largest_correction = torch.zeros((), dtype=dtype, device=device)
     tuner: StepTuner[int] | None = None
     precision: Precision = "fp32"
 
@@ -451,6 +482,10 @@ def rollout(
         if trajectory.step_context is not None:
             step_context = trajectory.step_context[: c + steps].copy()
         ran: dict[str, Any] = {"num_steps": steps}
+        if walls is not None:
+            ran.update(
+                wall_corrections=int(corrected), wall_correction_max=float(largest_correction)
+            )
         if tuner is not None:  # what the steps ran with (in the end: see gns.threads)
             ran.update(precision=precision, torch_threads=tuner.chosen)
         return Rollout(
@@ -494,6 +529,10 @@ def rollout(
                 next_position = simulator.predict_positions(
                     window, types, None, context_at(frame), material, mark=mark, obstacles=obstacles
                 )
+                if walls is not None:
+                    placed = torch.maximum(torch.minimum(next_position, walls[1]), walls[0])
+                    moved = (placed - next_position).norm(dim=-1)
+                    next_position = placed
                 if num_kinematic:
                     next_position[kinematic_index] = kinematic_truth[frame + 1]
                 # Each part from the end of the one before; integration ends here, after the
@@ -528,6 +567,11 @@ def rollout(
                         nonfinite,
                         particles,
                     )
+                if walls is not None:
+                    if num_kinematic:  # held to the truth, not put on a wall
+                        moved[kinematic_index] = 0
+                    corrected += (moved > 0).sum()
+                    largest_correction = torch.maximum(largest_correction, moved.max())
                 predicted[step] = next_position
                 window = torch.cat([window[:, 1:], next_position[:, None]], dim=1)
     finally:

@@ -316,9 +316,12 @@ def _non_finite_message(
 
 def _fine_tuning_config(config: Config | None, model: Config, source: object) -> Config:
     """config for fine-tuning the model whose config is `model` (None: the model's own): the
-    sections that shape the network and its inputs must be the model's."""
+    sections that shape the network and its inputs must be the model's (scene.enforce_walls
+    shapes neither: only the rollouts)."""
     if config is None:
         return model
+    walls = dataclasses.replace(model.scene, enforce_walls=config.scene.enforce_walls)
+    model = dataclasses.replace(model, scene=walls)
     differ = [
         name
         for name in ("model", "scene", "normalization")
@@ -328,7 +331,8 @@ def _fine_tuning_config(config: Config | None, model: Config, source: object) ->
         sections = ", ".join(f"[{name}]" for name in differ)
         raise ValueError(
             f"--init-from {source}: the config's {sections} differ from the model's; fine-tuning "
-            "may change only [noise] and [train] (omit --config to use the model's own)"
+            "may change only [noise], [train] and scene.enforce_walls (omit --config to use the "
+            "model's own)"
         )
     return config
 
@@ -468,8 +472,8 @@ def train(
     else:  # resumed or fine-tuned: the weights and statistics (metadata or running) carry on
         simulator = simulator_from_checkpoint(initial)
         # The run's settings, not the checkpoint's: a fine-tuning run may change [noise] (which
-        # the simulator draws its input noise by) and [train]; [model], [scene] and
-        # [normalization] are the checkpoint's (checked above).
+        # the simulator draws its input noise by), [train] and scene.enforce_walls; [model],
+        # the rest of [scene] and [normalization] are the checkpoint's (checked above).
         simulator.config = config
         statistics = initial["statistics"]
         if checkpoint is None:

@@ -37,7 +37,9 @@ def validate(
     rollout MSE (config.validation_rollout_steps steps) over the first
     config.validation_rollouts of them, both over non-kinematic particles, and, in a scene with
     bounds, how far the rollouts' farthest particle got outside the box and, for reference, how
-    far the ground truth's did over the same frames. Eval mode (no noise, no statistics)."""
+    far the ground truth's did over the same frames; with the scene's walls enforced
+    (config.scene.enforce_walls), how many particle-steps they put back (wall_corrections).
+    Eval mode (no noise, no statistics)."""
     from gns.evaluate import one_step_errors, outside_box
     from gns.metrics import mse_over_time
     from gns.periodic import period_of
@@ -50,7 +52,7 @@ def validate(
         )
         figures["one_step_mse"] = errors["model"]
     history = simulator.config.model.velocity_history + 1
-    rollout_errors, excursions, truth_excursions = [], [], []
+    rollout_errors, excursions, truth_excursions, corrections = [], [], [], []
     bounds = simulator.scene.bounds
     period = period_of(bounds, simulator.scene.periodic)
     for trajectory in trajectories[: config.validation_rollouts]:
@@ -72,6 +74,8 @@ def validate(
             result.predicted_rollout, result.ground_truth_rollout, free, period=period
         )
         rollout_errors.append(float(per_frame.mean()))
+        if result.metadata["enforce_walls"]:
+            corrections.append(result.metadata["wall_corrections"])
         if bounds is not None:
             excursions.append(outside_box(result.predicted_rollout[:, free], bounds))
     if rollout_errors:
@@ -79,6 +83,8 @@ def validate(
     if bounds is not None and rollout_errors:
         figures["rollout_outside_box"] = max(excursions)
         figures["truth_outside_box"] = max(truth_excursions)
+    if corrections:
+        figures["wall_corrections"] = float(sum(corrections))
     return figures
 
 

@@ -59,6 +59,12 @@ def add_rollout(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
         help="stop a rollout when a particle is farther outside the domain than this many "
         "times its longest side (default 1)",
     )
+    roll.add_argument(
+        "--enforce-walls",
+        action=argparse.BooleanOptionalAction,
+        help="put every particle that a step takes past a wall back on it, counting each "
+        "correction in the file's metadata (default: the model's scene.enforce_walls)",
+    )
     add_checkpoint_option(roll)
     add_runtime_options(roll)
     roll.set_defaults(handler=run_rollout)
@@ -83,8 +89,10 @@ def add_eval(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         "runout_ratio, height_ratio, density_ratio, each over the ground truth's (1 is right). "
         "Percentiles interpolate linearly between sorted values. The fronts (1st and 99th "
         "percentile of x in every frame) go to the JSON as front_x_p1 and front_x_p99. Means "
-        "are over trajectories (outside_box: the worst). The one-step errors and the rest test "
-        "take every k-th frame of data whose frames are k times finer than the model's step, "
+        "are over trajectories (outside_box: the worst). Rollouts made with the walls enforced "
+        "add the model's wall_corrections (particle-steps put back on a wall) and "
+        "wall_correction_max (the largest move, the worst). The one-step errors and the rest "
+        "test take every k-th frame of data whose frames are k times finer than the model's step, "
         "as `gns rollout` does. Writes RUN/eval_SPLIT.json.",
     )
     ev.add_argument("--run", type=model_path, required=True, help=RUN_HELP)
@@ -162,6 +170,7 @@ def run_rollout(args: argparse.Namespace) -> int:
                 num_steps=args.steps,
                 metadata=info,
                 escape_distance=args.escape_distance,
+                enforce_walls=args.enforce_walls,
             )
         except RolloutDiverged as err:
             result, diverged = err.rollout, diverged + 1
@@ -182,7 +191,16 @@ def run_rollout(args: argparse.Namespace) -> int:
             print(note, file=sys.stderr)
         parts = "  ".join(f"{k} {1e3 * np.median(v):.2f}" for k, v in result.timings.items())
         total = 1e3 * np.median(sum(result.timings.values()))
-        print(f"trajectory {i}: {result.num_steps} steps, ms/step (median) {total:.2f}: {parts}")
+        walls = ""
+        if result.metadata["enforce_walls"]:
+            walls = (
+                f"; walls put back {result.metadata['wall_corrections']} particle-steps (at "
+                f"most {result.metadata['wall_correction_max']:.3g})"
+            )
+        print(
+            f"trajectory {i}: {result.num_steps} steps, ms/step (median) {total:.2f}: {parts}"
+            + walls
+        )
     print(f"wrote {len(indices)} rollouts to {out}")
     return 1 if diverged else 0
 
@@ -280,7 +298,10 @@ def run_eval(args: argparse.Namespace) -> int:
             f"({band['held_out'][0]:g}-{band['held_out'][1]:g} degrees): {figure}"
         )
     write_json_atomic(written, report)
-    print(f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box: worst)")
+    print(
+        f"{len(files)} rollouts of {args.split}; mean over trajectories (outside_box, "
+        "wall_correction_max: worst)"
+    )
     if report.get("frame_stride", 1) > 1:
         print(
             f"one-step errors and rest test: {describe_frame_stride(dataset.metadata.dt, stride)}"

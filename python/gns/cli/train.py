@@ -73,6 +73,12 @@ def add_export(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
     add_checkpoint_option(export)
     export.add_argument("--average", type=positive_int, default=1, help="default 1 (no average)")
     export.add_argument("--out", type=Path, required=True, help="model folder")
+    export.add_argument(
+        "--enforce-walls",
+        action=argparse.BooleanOptionalAction,
+        help="the model's rollouts put particles that a step takes past a wall back on it, "
+        "each correction counted (scene.enforce_walls; default: as trained)",
+    )
     export.set_defaults(handler=run_export)
 
 
@@ -99,12 +105,13 @@ def run_train(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from gns.checkpoints import MODEL_FILE, export_model
 
-    state = export_model(args.run, args.out, args.checkpoint, args.average)
+    state = export_model(args.run, args.out, args.checkpoint, args.average, args.enforce_walls)
     steps = state.get("averaged_steps") or [state["step"]]
     what = (
         f"the average of steps {', '.join(map(str, steps))}"
         if len(steps) > 1
         else f"step {steps[0]}"
     )
-    print(f"wrote {args.out / MODEL_FILE}: {what} of {args.run}")
+    walls = " (walls enforced)" if state["config"]["scene"].get("enforce_walls") else ""
+    print(f"wrote {args.out / MODEL_FILE}: {what} of {args.run}{walls}")
     return 0

@@ -302,7 +302,15 @@ def _learned_row(
         seconds.append(np.stack([result.timings[part] for part in TIMING_PARTS]))
     timings = np.concatenate(seconds, axis=1)  # (parts, all steps of all trajectories)
     name = MODEL_NAMES[simulator.config.model.kind]
-    row = Row(name, setting, _device_label(device, ran), short=f"{name} {setting}")
+    how = setting
+    if any(r["enforce_walls"] for r in ran):
+        # A model kept in the box by its walls says so, with what they changed.
+        moved = sum(r["wall_corrections"] for r in ran)
+        largest = max(r["wall_correction_max"] for r in ran)
+        how += (
+            f"; walls enforced: {moved} particle-steps put back on a wall (at most {largest:.2g})"
+        )
+    row = Row(name, how, _device_label(device, ran), short=f"{name} {setting}")
     if timings.shape[1]:
         # Means, not medians: the parts' means add up to the mean total.
         row.split = {part: float(timings[i].mean()) for i, part in enumerate(TIMING_PARTS)}
