@@ -79,6 +79,27 @@ def test_export_refuses_what_it_cannot_average(run, tmp_path):
     assert not (tmp_path / "m").exists()
 
 
+def test_checkpoints_of_a_resumed_run_average_unless_the_model_changed(run, tmp_path):
+    """A run resumed with another --steps records another [train] section from then on; its
+    checkpoints are still one model. A changed [model] section is refused, named."""
+    folder, _ = run
+    copy = tmp_path / "run"
+    (copy / "checkpoints").mkdir(parents=True)
+    for path in steps_of(folder):
+        state = load_checkpoint(path)
+        if state["step"] == 9:
+            state["config"]["train"]["steps"] = 1000
+            state["config"]["noise"]["std"] = 0.5 * state["config"]["noise"]["std"]
+        torch.save(state, copy / "checkpoints" / path.name)
+    assert export_model(copy, tmp_path / "m", average=2)["averaged_steps"] == [6, 9]
+    last = copy / "checkpoints" / steps_of(folder)[-1].name
+    state = load_checkpoint(last)
+    state["config"]["model"]["latent_size"] += 1
+    torch.save(state, last)
+    with pytest.raises(ValueError, match=r"different models \(step 6 and step 9 differ in model\)"):
+        export_model(copy, tmp_path / "m2", average=2)
+
+
 def test_a_model_folder_rolls_out_and_writes_beside_the_working_directory(
     run, tmp_path, monkeypatch
 ):

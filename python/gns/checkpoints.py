@@ -305,8 +305,13 @@ def export_model(
         state = sources[-1]
     exported = {key: state[key] for key in WEIGHTS_KEYS}
     if average > 1:
-        if any(s["config"] != state["config"] or s["scene"] != state["scene"] for s in sources):
-            raise ValueError(f"{run}: the last {average} checkpoints are of different models")
+        for source in sources:
+            differs = _model_differences(source, state)
+            if differs:
+                raise ValueError(
+                    f"{run}: the last {average} checkpoints are of different models (step "
+                    f"{source['step']} and step {state['step']} differ in {', '.join(differs)})"
+                )
         # Which entries are parameters: those of the model the checkpoint builds.
         parameters = {name for name, _ in simulator_from_checkpoint(state).named_parameters()}
         model = dict(state["model"])
@@ -322,6 +327,18 @@ def export_model(
     folder.mkdir(parents=True, exist_ok=True)
     save_checkpoint(folder / MODEL_FILE, exported)
     return exported
+
+
+# Config sections that say how the weights were trained, not which function they compute: a run
+# resumed with another --steps, say, is still one model, and its checkpoints average.
+TRAINING_SECTIONS = ("train", "noise")
+
+
+def _model_differences(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
+    """The config sections (and "scene") in which two checkpoints' models differ."""
+    sections = (set(a["config"]) | set(b["config"])) - set(TRAINING_SECTIONS)
+    differs = [k for k in sorted(sections) if a["config"].get(k) != b["config"].get(k)]
+    return differs + (["scene"] if a["scene"] != b["scene"] else [])
 
 
 def simulator_from_checkpoint(

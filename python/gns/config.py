@@ -153,8 +153,11 @@ class ModelConfig:
     velocity_history: C, the number of input velocities (the model reads C + 1 positions).
     mlp_encoder_decoder: False replaces the encoder and decoder MLPs by single linear layers.
     self_edges: include the edge i -> i in the radius graph.
-    global_latent: feed the scene's global context as a true global input with a global latent
-        updated at every step; False appends the context to every node instead.
+    global_latent: a latent of the whole scene, updated at every message-passing step from the
+        sums of the node updates and messages and read by every node and edge at the next: the
+        scene's global context is its input when there is one (False appends the context to
+        every node instead), a learned vector otherwise. It reaches every particle within two
+        steps, where a particle's own neighbourhood fades within 2-3 hops (docs/probes.md).
     edge_latent_updates: False keeps the encoded edge latents fixed through the processor.
     add_gravity: add the scene's gravity to the decoded acceleration, so the network predicts
         only the deviation from free fall.

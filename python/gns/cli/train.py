@@ -67,7 +67,9 @@ def add_export(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-ar
         "without the optimizer state. `gns rollout --run OUT` and gns.load_simulator(OUT) "
         "read it; outputs of commands given a model folder go to a folder of its name in the "
         "working directory. --average N averages the parameters of the run's last N "
-        "checkpoints instead of taking one.",
+        "checkpoints instead of taking one (they must be of one model: the same [model] and "
+        "[scene]; how they were trained, [train] and [noise], may differ, as after a --resume "
+        "with another --steps).",
     )
     export.add_argument("--run", type=existing_path, required=True, help="run folder or file")
     add_checkpoint_option(export)
