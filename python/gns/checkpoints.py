@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from gns.config import Config, from_dict
+from gns.config import MODEL_SECTIONS, Config, from_dict
 from gns.device import resolve_device
 from gns.files import atomic_file
 from gns.simulator import LearnedSimulator, Scene
@@ -329,15 +329,10 @@ def export_model(
     return exported
 
 
-# Config sections that say how the weights were trained, not which function they compute: a run
-# resumed with another --steps, say, is still one model, and its checkpoints average.
-TRAINING_SECTIONS = ("train", "noise")
-
-
 def _model_differences(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
-    """The config sections (and "scene") in which two checkpoints' models differ."""
-    sections = (set(a["config"]) | set(b["config"])) - set(TRAINING_SECTIONS)
-    differs = [k for k in sorted(sections) if a["config"].get(k) != b["config"].get(k)]
+    """The config's MODEL_SECTIONS (and the checkpoint's "scene") in which two checkpoints'
+    models differ: a run resumed with another --steps, say, is still one model."""
+    differs = [k for k in MODEL_SECTIONS if a["config"].get(k) != b["config"].get(k)]
     return differs + (["scene"] if a["scene"] != b["scene"] else [])
 
 

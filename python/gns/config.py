@@ -504,6 +504,11 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
 
 
+# The sections of a Config that define the model (its network and inputs); [noise] and [train]
+# say only how its weights were trained. Fine-tuning keeps these (gns.train), and checkpoints
+# average only when these agree (gns.checkpoints.export_model).
+MODEL_SECTIONS = ("model", "scene", "normalization")
+
 T = TypeVar("T")
 
 

@@ -57,7 +57,7 @@ from gns.checkpoints import (
     simulator_from_checkpoint,
     statistics_dict,
 )
-from gns.config import Config, TrainConfig, from_dict, to_dict
+from gns.config import MODEL_SECTIONS, Config, TrainConfig, from_dict, to_dict
 from gns.data import open_dataset
 from gns.data.windows import Batch, WindowSampler
 from gns.device import resolve_device
@@ -322,11 +322,7 @@ def _fine_tuning_config(config: Config | None, model: Config, source: object) ->
         return model
     walls = dataclasses.replace(model.scene, enforce_walls=config.scene.enforce_walls)
     model = dataclasses.replace(model, scene=walls)
-    differ = [
-        name
-        for name in ("model", "scene", "normalization")
-        if getattr(config, name) != getattr(model, name)
-    ]
+    differ = [name for name in MODEL_SECTIONS if getattr(config, name) != getattr(model, name)]
     if differ:
         sections = ", ".join(f"[{name}]" for name in differ)
         raise ValueError(
