@@ -126,7 +126,7 @@ def test_the_command_line_fine_tunes_with_the_models_own_config(tmp_path):
 
 @pytest.mark.parametrize("old_format", [False, True])
 def test_the_shipped_model_fine_tunes_on_data_of_its_scene(tmp_path, old_format):
-    """The shipped model fine-tunes on data of its own scene (a wall clip of 6 radii and no
+    """The shipped model fine-tunes on data of its own scene (walls seen from 20 radii, no
     obstacles), and so does the same model saved as checkpoint format 2, before the scene had
     obstacle features (the shipped model's format until 2026-11-26)."""
     shipped = load_simulator("sand2d-taichi")

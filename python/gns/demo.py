@@ -119,9 +119,9 @@ def finetune_config(
     shipped: Any, size: DemoSize, steps: int, rollout_steps: int, n_valid: int
 ) -> Any:
     """The fine-tuning of a shipped model (its gns.config.Config `shipped`): its own model,
-    scene and noise, and its last stage's training (models/NAME/stage4.toml for sand2d-taichi:
-    pushforward, mirroring), at a learning rate of 5e-5 decaying tenfold over 2000 steps (as
-    that stage), validated as _validation says."""
+    scene and noise, and its last stage's training (models/NAME/finetune.toml for
+    sand2d-taichi: pushforward, mirroring), at a learning rate of 5e-5 decaying tenfold over
+    2000 steps, validated as _validation says."""
     train = dataclasses.replace(
         shipped.train,
         steps=steps,
