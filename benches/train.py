@@ -75,6 +75,7 @@ from torch_bench import bench_device, machine_facts, synchronize  # noqa: E402
 # The stride of the shipped model's frames to the data's (its steps are 7.5 ms, the data's
 # frames 2.5 ms: models/sand2d-taichi/config.toml's header).
 FRAME_STRIDE = 3
+MODEL_STEP = 0.0025 * FRAME_STRIDE  # seconds
 
 
 def sand_data(path: Path, config: Config) -> tuple[str, Scene, list[Trajectory], object] | None:
@@ -92,12 +93,16 @@ def sand_data(path: Path, config: Config) -> tuple[str, Scene, list[Trajectory],
 
 def generated_data(config: Config, n: int) -> tuple[str, Scene, list[Trajectory], None]:
     """Four lattice trajectories of n particles, 40 frames each, in the config's scene
-    settings (wall clip); running normalisation from the first batch, as without metadata."""
+    settings (wall clip, gravity at the shipped model's step); running normalisation from the
+    first batch, as without metadata."""
     trajectories = []
     for k in range(4):
         scene, t = lattice(n + k, 40)  # n + k: four different jitters and velocities
         trajectories.append(dataclasses.replace(t, key=k))
-    scene = dataclasses.replace(scene, wall_clip=config.scene.wall_clip)
+    # Scene.gravity is per step (m/s^2 times the step squared), as Scene.from_dataset makes it.
+    g = config.scene.gravity
+    gravity = None if g is None else tuple(a * MODEL_STEP**2 for a in g)
+    scene = dataclasses.replace(scene, wall_clip=config.scene.wall_clip, gravity=gravity)
     return f"generated lattice, {n} particles", scene, trajectories, None
 
 
