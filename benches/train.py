@@ -78,6 +78,14 @@ FRAME_STRIDE = 3
 MODEL_STEP = 0.0025 * FRAME_STRIDE  # seconds
 
 
+def at_model_step(scene: Scene, config: Config, step: float) -> Scene:
+    """`scene` stepping `step` seconds at a time: its dt, and the config's gravity per step
+    (m/s^2 times the step squared, as Scene.from_dataset makes it per frame)."""
+    g = config.scene.gravity
+    gravity = None if g is None else tuple(a * step**2 for a in g)
+    return dataclasses.replace(scene, dt=step, gravity=gravity)
+
+
 def sand_data(path: Path, config: Config) -> tuple[str, Scene, list[Trajectory], object] | None:
     """(name, scene, trajectories at the model's stride, statistics) of the real train split."""
     if not path.is_dir():
@@ -85,8 +93,7 @@ def sand_data(path: Path, config: Config) -> tuple[str, Scene, list[Trajectory],
         return None
     dataset = open_dataset(path, "train")
     scene = Scene.from_dataset(dataset, config.scene)
-    if scene.dt is not None:
-        scene = dataclasses.replace(scene, dt=scene.dt * FRAME_STRIDE)
+    scene = at_model_step(scene, config, dataset.metadata.dt * FRAME_STRIDE)
     trajectories = [at_frame_stride(t, FRAME_STRIDE) for t in dataset]
     return "sand2d-taichi train", scene, trajectories, dataset.metadata
 
@@ -99,10 +106,8 @@ def generated_data(config: Config, n: int) -> tuple[str, Scene, list[Trajectory]
     for k in range(4):
         scene, t = lattice(n + k, 40)  # n + k: four different jitters and velocities
         trajectories.append(dataclasses.replace(t, key=k))
-    # Scene.gravity is per step (m/s^2 times the step squared), as Scene.from_dataset makes it.
-    g = config.scene.gravity
-    gravity = None if g is None else tuple(a * MODEL_STEP**2 for a in g)
-    scene = dataclasses.replace(scene, wall_clip=config.scene.wall_clip, gravity=gravity)
+    scene = dataclasses.replace(scene, wall_clip=config.scene.wall_clip)
+    scene = at_model_step(scene, config, MODEL_STEP)
     return f"generated lattice, {n} particles", scene, trajectories, None
 
 
