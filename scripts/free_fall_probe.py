@@ -1,17 +1,17 @@
 """Does a sand model fall at g? One step of a block in free fall, far from every wall.
 
-    python scripts/free_fall_probe.py MODEL [MODEL ...] [--corner 0.4 0.45] [--size 0.2]
+    python scripts/free_fall_probe.py MODEL [MODEL ...] [--corner X Y [Z]] [--size 0.2]
         [--spacing 0.0078125] [--friction-angle 30] [--particle-type T] [--speed 0]
 
-MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block (a lattice of
-`spacing`, `size` wide, lower-left corner at `corner`; the defaults are sand2d-taichi's block
-and particle spacing) is given the model's C + 1 input frames of a throw upwards that reaches
-its top at the last one (or, with --speed V, falling at V m/s there), so it has been in free
-fall throughout. Every real simulator then accelerates it at exactly g; the model's mean
-vertical acceleration over g is printed, with that of the bottom and top rows (a bottom
-falling faster than the top squeezes the block before it lands). A model that has learned
-gravity prints 1.00. The particles are of the scene's one free (not kinematic) type unless
---particle-type says which.
+MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block (a square, in 3D
+a cube, lattice of `spacing`, `size` wide, its lower corner at `corner`, by default in the
+middle of the model's box; the size and spacing default to sand2d-taichi's block) is given the
+model's C + 1 input frames of a throw upwards that reaches its top at the last one (or, with
+--speed V, falling at V m/s there), so it has been in free fall throughout. Every real
+simulator then accelerates it at exactly g; the model's mean vertical acceleration over g is
+printed, with that of the bottom and top rows (a bottom falling faster than the top squeezes
+the block before it lands). A model that has learned gravity prints 1.00. The particles are of
+the scene's one free (not kinematic) type unless --particle-type says which.
 """
 
 from __future__ import annotations
@@ -25,10 +25,27 @@ from gns.mpm import lattice
 from gns.probes import fall_in_g  # noqa: F401 (tests call it through this script)
 
 
+def falling_block(scene, args):
+    """The block at --corner, or in the middle of the box; inside the box either way."""
+    if args.corner is None:
+        return probes.probe_block(scene, args.size, args.spacing)
+    if len(args.corner) != scene.dim:
+        raise ValueError(f"--corner {args.corner} needs the scene's {scene.dim} coordinates")
+    outside = scene.bounds is not None and any(
+        c < lo or c + args.size > hi for c, (lo, hi) in zip(args.corner, scene.bounds, strict=True)
+    )
+    if outside:
+        raise ValueError(
+            f"the block at {args.corner}, {args.size} wide, is not inside the model's box "
+            f"{scene.bounds}; move it with --corner"
+        )
+    return lattice(args.corner, (args.size,) * scene.dim, args.spacing)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("models", nargs="+")
-    parser.add_argument("--corner", type=float, nargs=2, default=[0.4, 0.45])
+    parser.add_argument("--corner", type=float, nargs="+", help="default: the box's middle")
     parser.add_argument("--size", type=float, default=0.2)
     parser.add_argument("--spacing", type=float, default=1 / 128)
     parser.add_argument("--friction-angle", type=float, default=30.0)
@@ -42,19 +59,10 @@ def main() -> None:
     )
     args = parser.parse_args()
     torch.set_num_threads(1)
-    block = lattice(args.corner, (args.size, args.size), args.spacing)
     for name in args.models:
         simulator = gns.load_simulator(name).eval()
-        scene = simulator.scene
-        if scene.bounds is not None and not all(
-            lo <= c and c + args.size <= hi
-            for c, (lo, hi) in zip(args.corner, scene.bounds, strict=True)
-        ):
-            raise SystemExit(
-                f"{name}: the block at {args.corner}, {args.size} wide, is not inside the "
-                f"model's box {scene.bounds}; move it with --corner"
-            )
         try:
+            block = falling_block(simulator.scene, args)
             context, particle_type = probes.probe_inputs(
                 simulator, args.friction_angle, args.particle_type
             )

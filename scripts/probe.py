@@ -1,14 +1,17 @@
-"""What a 2D sand model can see: its reach, the floor, and a landing (docs/probes.md).
+"""What a particle model (2D or 3D) sees and does: reach, floor, landing, rest, spread
+(docs/probes.md).
 
     python scripts/probe.py reach MODEL [MODEL ...] [--untrained] [--variant KEY=VALUE ...]
     python scripts/probe.py floor MODEL [MODEL ...] [--shift 1.0]
     python scripts/probe.py landing MODEL DATA SPLIT [--trajectories 0 1 ...] [--bands 3]
+        [--threshold 3]
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
+    python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block of reach and
-floor is a lattice (`--spacing`, `--size` wide; the defaults are sand2d-taichi's block and
-particle spacing) of the scene's one free particle type, with tan(--friction-angle) as the
-context where the model takes one.
+floor is a square (a cube in 3D) lattice (`--spacing`, `--size` wide; the defaults are
+sand2d-taichi's block and particle spacing) of the scene's one free particle type, with
+tan(--friction-angle) as the context where the model takes one.
 
 - reach: the block at the top of a throw in the middle of the box (free fall, no wall near);
   the sensitivity of the 9 central particles' predictions to the node inputs of the
@@ -23,11 +26,16 @@ context where the model takes one.
 - landing: each trajectory rolled out from its first frames and predicted one step at a time
   from the truth's; the mean vertical acceleration (g, up positive) and neighbour count of
   the lowest, middle and highest third of the particles (by height in the first frame)
-  around the landing (the first frame at which the lowest third decelerates by 3 g).
+  around the landing (the first frame at which the lowest third decelerates by --threshold g).
 - rest: one step from each trajectory's last C + 1 frames (a settled pile), the predicted
   vertical acceleration (g, up positive) by height above the floor (below R, 1-3 R, 3-6 R,
   above 6 R): the truth's is about 0, and a model that pushes the pile down by a tenth of g
   sinks it 0.5 m in a second of rollout unless the floor holds it.
+- spread: one step at a time from the truth's frames of each trajectory, the outward
+  horizontal acceleration (g) of the outer fifth of the particles (farthest in x from the
+  mean), the truth's and the model's, over the frames at which they move outward faster than
+  --flowing m/s (a spreading front): a model that brakes a front harder than the sand stops
+  it short of the truth's runout, however well it lands.
 """
 
 from __future__ import annotations
@@ -40,19 +48,15 @@ import numpy as np
 import torch
 from gns import probes
 from gns.data import at_frame_stride
-from gns.mpm import lattice
 from gns.rollout import RolloutDiverged, rollout
 
 
 def block_in(simulator, args, where: str) -> np.ndarray:
-    """The probe's block: centred in x, in the middle of the box ("middle") or with its
-    lowest row half a spacing above the floor ("floor")."""
-    (x_lo, x_hi), (y_lo, y_hi) = simulator.scene.bounds or ((0.0, 1.0), (0.0, 1.0))
-    y = (y_lo + y_hi - args.size) / 2 if where == "middle" else y_lo
-    block = lattice(((x_lo + x_hi - args.size) / 2, y), (args.size, args.size), args.spacing)
-    if block[:, 0].min() < x_lo or block[:, 0].max() > x_hi or block[:, 1].max() > y_hi:
-        raise SystemExit(f"a block {args.size} wide does not fit the box {simulator.scene.bounds}")
-    return block
+    """The probe's block (probes.probe_block) in the model's box, or a clear exit."""
+    try:
+        return probes.probe_block(simulator.scene, args.size, args.spacing, where)
+    except ValueError as err:
+        raise SystemExit(str(err)) from err
 
 
 def reach(args) -> None:
@@ -105,7 +109,8 @@ def floor(args) -> None:
         floor_y = scene.bounds[1][0]
         rest = np.repeat(block[:, None], frames, axis=1)
         speed = args.landing_speed * scene.dt
-        falling = probes.block_history(block + [0.0, 0.5 * scene.radius], frames, g, -speed)
+        up = np.eye(scene.dim)[1]  # y is up
+        falling = probes.block_history(block + 0.5 * scene.radius * up, frames, g, -speed)
         edges = np.arange(0.0, args.size / scene.radius + args.bin, args.bin)
         print(
             f"{name}: change of the predicted acceleration (g) when the floor moves {args.shift} "
@@ -144,13 +149,22 @@ def landing(args) -> None:
         one_step = np.full_like(truth, np.nan)
         one_step[history:] = one_step_frames(simulator, trajectory, history)
         r = probes.landing_timeline(
-            truth[:, free], rolled[:, free], one_step[:, free], radius, g, bands=args.bands
+            truth[:, free],
+            rolled[:, free],
+            one_step[:, free],
+            radius,
+            g,
+            bands=args.bands,
+            threshold=args.threshold,
         )
         print(f"{args.model} on {args.split} trajectory {index}: ", end="")
         if r["landing"] is None:
-            print("no landing (the lowest band never decelerates by 3 g)")
+            print(f"no landing (the lowest band never decelerates by {args.threshold:g} g)")
             continue
-        print(f"landing at step {r['landing']} (lowest band first up by 3 g); bands low to high")
+        print(
+            f"landing at step {r['landing']} (lowest band first up by {args.threshold:g} g); "
+            "bands low to high"
+        )
         bands = range(args.bands)
         heads = [f"a{b} truth / 1-step / rollout" for b in bands]
         heads += [f"density{b} truth / rollout" for b in bands]
@@ -192,7 +206,7 @@ def rest(args) -> None:
             context = trajectory.step_context
             predicted = simulator.predict_positions(
                 torch.from_numpy(frames),
-                torch.from_numpy(trajectory.particle_type),
+                torch.tensor(trajectory.particle_type),
                 context=None if context is None else torch.from_numpy(context[-1:]).float(),
             )
             free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
@@ -212,6 +226,46 @@ def rest(args) -> None:
             for b in range(a.shape[1])
         ]
         print(f"| {name} | " + " | ".join(cells) + f" | {np.nanmax(np.abs(t)):.3f} |")
+
+
+def spread(args) -> None:
+    dataset = gns.data.open_dataset(args.data, args.split)
+    print(
+        f"one step from the truth's frames of each {args.split} trajectory: the outer fifth's "
+        f"mean outward acceleration (g) while it spreads faster than {args.flowing} m/s"
+    )
+    print("| model | trajectory | frames | truth | one step | one step / truth |")
+    print("|---|---|---|---|---|---|")
+    for name in args.models:
+        simulator = gns.load_simulator(name).eval()
+        stride = simulator.frame_stride_for(dataset.metadata)
+        history = simulator.config.model.velocity_history + 1
+        g, dt = probes.g_step(simulator), simulator.scene.dt
+        truths, ours = [], []
+        for index, trajectory in enumerate(dataset):
+            trajectory = at_frame_stride(trajectory, stride)
+            free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
+            truth = trajectory.positions.astype(np.float64)
+            one_step = np.full_like(truth, np.nan)
+            one_step[history:] = one_step_frames(simulator, trajectory, history)
+            r = probes.spreading(truth[:, free], one_step[:, free], g)
+            flowing = np.isfinite(r["one_step"]) & (r["speed"] > args.flowing * dt)
+            if not flowing.any():
+                print(f"| {name} | {index} | 0 | | | |")
+                continue
+            a, b = r["truth"][flowing], r["one_step"][flowing]
+            truths.append(a)
+            ours.append(b)
+            print(
+                f"| {name} | {index} | {flowing.sum()} | {a.mean():+.2f} | {b.mean():+.2f} | "
+                f"{b.mean() / a.mean():.2f} |"
+            )
+        if truths:
+            a, b = np.concatenate(truths), np.concatenate(ours)
+            print(
+                f"| {name} | all | {len(a)} | {a.mean():+.2f} | {b.mean():+.2f} | "
+                f"{b.mean() / a.mean():.2f} |"
+            )
 
 
 @torch.no_grad()
@@ -248,12 +302,19 @@ def main() -> None:
     p.add_argument("split")
     p.add_argument("--trajectories", type=int, nargs="*")
     p.add_argument("--bands", type=int, default=3)
+    p.add_argument("--threshold", type=float, default=3.0, help="g; default 3")
     p.set_defaults(run=landing)
     p = probes_.add_parser("rest")
     p.add_argument("models", nargs="+")
     p.add_argument("--data", required=True)
     p.add_argument("--split", default="valid")
     p.set_defaults(run=rest)
+    p = probes_.add_parser("spread")
+    p.add_argument("models", nargs="+")
+    p.add_argument("--data", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--flowing", type=float, default=0.3)
+    p.set_defaults(run=spread)
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:

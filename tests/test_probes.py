@@ -28,13 +28,14 @@ DT = 0.0075
 G = 9.81 * DT**2
 
 
-def untrained(steps: int, wall_clip: float = 1.0, seed: int = 0) -> LearnedSimulator:
-    """A GNS of `steps` message-passing steps with fresh weights in sand2d-taichi's box."""
+def untrained(steps: int, wall_clip: float = 1.0, seed: int = 0, dim: int = 2) -> LearnedSimulator:
+    """A GNS of `steps` message-passing steps with fresh weights in sand2d-taichi's box (a
+    cube of the same span in 3D)."""
     scene = Scene(
-        dim=2,
+        dim=dim,
         radius=RADIUS,
         particle_types=(6,),
-        bounds=((0.1, 0.9), (0.1, 0.9)),
+        bounds=((0.1, 0.9),) * dim,
         walls=True,
         wall_clip=wall_clip,
         dt=DT,
@@ -95,6 +96,31 @@ def test_a_network_of_m_message_passing_steps_reaches_exactly_m_hops(steps):
     np.testing.assert_allclose(reach["mean"], ratio, rtol=1e-9)
 
 
+def test_the_reach_in_3d_ends_at_m_hops_too():
+    simulator = untrained(2, dim=3)
+    block = lattice((0.4,) * 3, (0.08,) * 3, SPACING)  # 10 x 10 x 10
+    history = probes.block_history(block, 6, G)
+    targets = np.argsort(np.linalg.norm(block - block.mean(axis=0), axis=1))[:2]
+    reach = probes.reach_by_hop(simulator, history, 6, None, targets, max_hop=3)
+    assert (reach["total"][1:3] > 1e-6).all() and reach["total"][3] == 0, reach
+    assert reach["pairs"][3] > 0
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_probe_block_sits_in_the_middle_of_the_box_or_on_its_floor(dim):
+    scene = untrained(1, dim=dim).scene  # the box is [0.1, 0.9] on every axis
+    middle = probes.probe_block(scene, 0.2, 0.01)
+    assert middle.shape == (20**dim, dim)
+    np.testing.assert_allclose(middle.mean(axis=0), 0.5, atol=1e-12)
+    on_floor = probes.probe_block(scene, 0.2, 0.01, "floor")
+    assert on_floor[:, 1].min() == pytest.approx(0.1 + 0.005)  # half a spacing above it
+    np.testing.assert_allclose(np.delete(on_floor.mean(axis=0), 1), 0.5, atol=1e-12)
+    with pytest.raises(ValueError, match="a block 0.9 wide does not fit the box"):
+        probes.probe_block(scene, 0.9, 0.01)
+    with pytest.raises(ValueError, match="where must be 'middle' or 'floor'"):
+        probes.probe_block(scene, 0.2, 0.01, "top")
+
+
 def test_an_untrained_copy_keeps_the_normalisers_and_redraws_the_network():
     simulator = untrained(2)
     simulator.velocity_normalizer.update(torch.randn(50, 2))
@@ -121,11 +147,13 @@ def test_an_untrained_variant_has_the_changed_setting_and_its_reach():
     assert wider.scene.radius == 2 * RADIUS
 
 
-@pytest.mark.parametrize(("steps", "wall_clip"), [(1, 2.0), (2, 3.0)])
-def test_the_floor_is_seen_no_higher_than_the_wall_clip_plus_m_hops(steps, wall_clip):
-    simulator = untrained(steps, wall_clip)
-    block = lattice((0.4, 0.1), (0.16, 0.16), SPACING)  # on the floor, y = 0.1
-    history = probes.block_history(block + [0.0, 0.5 * RADIUS], 6, G, -1.25 * DT)
+@pytest.mark.parametrize(("steps", "wall_clip", "dim"), [(1, 2.0, 2), (2, 3.0, 2), (1, 2.0, 3)])
+def test_the_floor_is_seen_no_higher_than_the_wall_clip_plus_m_hops(steps, wall_clip, dim):
+    simulator = untrained(steps, wall_clip, dim=dim)
+    side = 0.16 if dim == 2 else 0.07
+    block = probes.probe_block(simulator.scene, side, SPACING, "floor")  # the floor: y = 0.1
+    up = np.eye(dim)[1]
+    history = probes.block_history(block + 0.5 * RADIUS * up, 6, G, -1.25 * DT)
     scene = simulator.scene
     change = probes.floor_shift(simulator, history, 6, None, shift=1.0)
     assert simulator.scene is scene  # put back
@@ -204,15 +232,17 @@ def test_height_bands_split_the_particles_into_equal_thirds_by_height():
     assert frame[band == 1, 1].max() < frame[band == 2, 1].min()
 
 
-def test_rest_by_height_bins_each_particle_by_its_height_above_the_floor():
+@pytest.mark.parametrize("dim", [2, 3])
+def test_rest_by_height_bins_each_particle_by_its_height_above_the_floor(dim):
     floor = 0.1
     # Five particles at 0.5, 2, 2.5, 4 and 10 radii above the floor and one 0.2 R under it,
     # at rest in the history; the "model" pushes each by a known number of g.
     heights = np.array([0.5, 2.0, 2.5, 4.0, 10.0, -0.2])
-    frame = np.stack([np.linspace(0.3, 0.6, 6), floor + heights * RADIUS], axis=1)
+    frame = np.full((6, dim), 0.5)
+    frame[:, 0], frame[:, 1] = np.linspace(0.3, 0.6, 6), floor + heights * RADIUS
     history = np.repeat(frame[:, None], 6, axis=1)
     pushed = np.array([0.3, -0.1, -0.3, 2.0, -1.0, 0.5])
-    predicted = frame + np.stack([np.zeros(6), pushed * G], axis=1)
+    predicted = frame + np.outer(pushed * G, np.eye(dim)[1])
     r = probes.rest_by_height(history, predicted, floor, RADIUS, G, edges=(1.0, 3.0, 6.0, 20.0))
     np.testing.assert_array_equal(r["count"], [2, 2, 1, 1, 0])
     np.testing.assert_allclose(r["acceleration"][:4], [0.4, -0.2, 2.0, -1.0], rtol=1e-9)
@@ -225,10 +255,37 @@ def test_rest_by_height_bins_each_particle_by_its_height_above_the_floor():
 
 
 def test_rest_by_height_refuses_frames_of_the_wrong_shape():
-    with pytest.raises(ValueError, match=r"history must be \(N, C \+ 1 >= 3, 2\)"):
+    with pytest.raises(ValueError, match=r"history must be \(N, C \+ 1 >= 3, D = 2 or 3\)"):
         probes.rest_by_height(np.zeros((4, 2, 2)), np.zeros((4, 2)), 0.0, RADIUS, G)
+    with pytest.raises(ValueError, match=r"history must be .*got \(4, 6, 4\)"):
+        probes.rest_by_height(np.zeros((4, 6, 4)), np.zeros((4, 4)), 0.0, RADIUS, G)
     with pytest.raises(ValueError, match=r"predicted must be \(4, 2\)"):
         probes.rest_by_height(np.zeros((4, 6, 2)), np.zeros((3, 2)), 0.0, RADIUS, G)
+
+
+def test_spreading_reads_the_outward_braking_of_the_outer_particles_only():
+    # 50 particles on a row about x = 0.5: the outer fifth (10, the 5 farthest each side) glide
+    # outward from speed v, braking at a; the inner 40 stay put (they must not dilute it). The
+    # "model" brakes the outer ones twice as hard, from the truth's frames.
+    x0 = np.linspace(0.3, 0.7, 50)
+    side = np.sign(x0 - 0.5)
+    outer = np.abs(x0 - 0.5) >= np.sort(np.abs(x0 - 0.5))[-10]
+    v, a, frames = 0.004, 0.3 * G, 12
+    t = np.arange(frames)[:, None]
+    moved = np.where(outer, side * (v * t - 0.5 * a * t**2), 0.0)
+    truth = np.stack([x0 + moved, np.full_like(moved, 0.2)], axis=-1)
+    one_step = truth.copy()
+    one_step[2:, :, 0] -= np.where(outer, side * a, 0.0)
+    r = probes.spreading(truth, one_step, G, outer=0.2)
+    assert np.isnan(r["truth"][:2]).all()
+    np.testing.assert_allclose(r["truth"][2:], -0.3, rtol=1e-6)
+    np.testing.assert_allclose(r["one_step"][2:], -0.6, rtol=1e-6)
+    k = np.arange(2, frames)
+    np.testing.assert_allclose(r["speed"][2:], v - a * (2 * k - 3) / 2, rtol=1e-6)
+    with pytest.raises(ValueError, match="outer must be a fraction in"):
+        probes.spreading(truth, one_step, G, outer=0.0)
+    with pytest.raises(ValueError, match="the same"):
+        probes.spreading(truth, one_step[1:], G)
 
 
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "probe.py"
@@ -256,3 +313,6 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     rest = run_probe("rest", str(run), "--data", str(native), "--split", "test")
     assert rest[2].startswith("| model | below R | 1-3 R | 3-6 R | above 6 R |"), rest
     assert rest[4].startswith(f"| {run} | ") and rest[4].count("|") == 7, rest
+    spread = run_probe("spread", str(run), "--data", str(native), "--flowing", "0")
+    assert spread[1].startswith("| model | trajectory | frames | truth | one step |"), spread
+    assert spread[-1].startswith(f"| {run} | all | "), spread

@@ -10,6 +10,9 @@ scripts/probe.py run them):
                       above it: how far up a block the floor is seen
     landing_timeline  acceleration and density by height band through a block's landing,
                       the truth against the model's one-step predictions and its rollout
+    spreading         the outward horizontal acceleration of a deposit's outer particles as it
+                      spreads, the truth against the model's one-step predictions: whether
+                      the model brakes a flowing front as hard as the sand does
     rest_by_height    one step of a settled pile from the truth's last frames: the
                       acceleration it predicts by height above the floor (the truth: 0); a
                       model that pushes a pile down sinks it into the floor over a rollout
@@ -31,6 +34,7 @@ import torch
 from torch import Tensor
 
 import gns.ops as ops
+from gns.mpm import lattice
 from gns.simulator import LearnedSimulator
 
 GRAVITY = 9.81  # m/s^2, along -y
@@ -46,9 +50,11 @@ __all__ = [
     "landing_frame",
     "landing_timeline",
     "neighbour_counts",
+    "probe_block",
     "probe_inputs",
     "reach_by_hop",
     "rest_by_height",
+    "spreading",
     "untrained_copy",
 ]
 
@@ -67,15 +73,28 @@ def block_history(
     return np.stack([block + d * up for d in rise], axis=1)
 
 
+def probe_block(scene: Any, size: float, spacing: float, where: str = "middle") -> np.ndarray:
+    """(N, D) the probes' block: a cube (a square in 2D) lattice of `spacing`, `size` wide,
+    centred across the box, its middle at the box's middle height ("middle") or its lowest
+    layer half a spacing above the floor ("floor"). y (axis 1) is up, in 2D and 3D alike."""
+    if where not in ("middle", "floor"):
+        raise ValueError(f"where must be 'middle' or 'floor', got {where!r}")
+    bounds = scene.bounds or ((0.0, 1.0),) * scene.dim
+    corner = [(lo + hi - size) / 2 for lo, hi in bounds]
+    if where == "floor":
+        corner[1] = bounds[1][0]
+    if any(c < lo or c + size > hi for c, (lo, hi) in zip(corner, bounds, strict=True)):
+        raise ValueError(f"a block {size} wide does not fit the box {bounds}")
+    return lattice(corner, (size,) * scene.dim, spacing)
+
+
 def probe_inputs(
     simulator: Any, friction_angle: float = 30.0, particle_type: int | None = None
 ) -> tuple[Tensor | None, int]:
-    """The step context and the particle type a probe gives a 2D sand model: tan(friction
-    angle) when the scene has a context of one value (sand2d-taichi's), and the scene's one
-    free (not kinematic) type unless `particle_type` says which."""
+    """The step context and the particle type a probe gives a model: tan(friction angle)
+    when the scene has a context of one value (sand2d-taichi's), and the scene's one free
+    (not kinematic) type unless `particle_type` says which."""
     scene = simulator.scene
-    if scene.dim != 2:
-        raise ValueError(f"the probes take 2D scenes, this one is {scene.dim}D")
     if scene.context_size > 1:
         raise ValueError(f"the scene has a context of {scene.context_size} values; probes give 1")
     context = None
@@ -247,7 +266,7 @@ def floor_shift(
 
 
 def height_bands(first_frame: np.ndarray, bands: int) -> np.ndarray:
-    """(N,) band of each particle by its height in the first frame (N, 2): 0 the lowest
+    """(N,) band of each particle by its height in the first frame (N, D): 0 the lowest
     1/bands of the particles ... bands - 1 the highest. Bands follow the particles
     (Lagrangian), so a band's density is that of the same sand before and after it lands."""
     rank = np.argsort(np.argsort(first_frame[:, 1], kind="stable"), kind="stable")
@@ -282,8 +301,8 @@ def landing_timeline(
 ) -> dict[str, Any]:
     """Acceleration and density by height band around the landing, the truth against a model.
 
-    truth: (T, N, 2) true positions at the model's step. rollout: (T, N, 2) the model's
-    rollout, whose first frames are the truth's (NaN where it has no frame). one_step: (T, N, 2)
+    truth: (T, N, D) true positions at the model's step. rollout: (T, N, D) the model's
+    rollout, whose first frames are the truth's (NaN where it has no frame). one_step: (T, N, D)
     the model's prediction of each frame t from the truth's frames before it (NaN where none).
     g: gravity per step^2. The landing is the first frame at which the lowest band's mean
     upward acceleration in the truth exceeds `threshold` g.
@@ -328,6 +347,43 @@ def landing_timeline(
     return result
 
 
+# ---------------------------------------------------------------------------------- spreading
+
+
+def spreading(
+    truth: np.ndarray, one_step: np.ndarray, g: float, outer: float = 0.2
+) -> dict[str, np.ndarray]:
+    """The outward horizontal acceleration of the outer particles, frame by frame.
+
+    truth: (T, N, D) true positions at the model's step; one_step: (T, N, D) the model's
+    prediction of each frame t from the truth's frames before it (NaN where none). At each
+    frame t >= 2, the outer particles are the `outer` fraction farthest in x (axis 0) from
+    the mean x of frame t - 1; "outward" is away from that mean. Returns, each (T,) and NaN
+    for t < 2: "truth" and "one_step", the outer particles' mean outward acceleration that
+    arrives at t (x_t - 2 x_{t-1} + x_{t-2}, over g; negative: braking), and "speed" their
+    mean outward velocity at t - 1 (x_{t-1} - x_{t-2}, per step).
+    """
+    truth = np.asarray(truth, dtype=np.float64)
+    one_step = np.asarray(one_step, dtype=np.float64)
+    if truth.ndim != 3 or truth.shape != one_step.shape:
+        raise ValueError(
+            f"truth and one_step must be the same (T, N, D), got {truth.shape} and {one_step.shape}"
+        )
+    if not 0.0 < outer <= 1.0:
+        raise ValueError(f"outer must be a fraction in (0, 1], got {outer}")
+    rows = {name: np.full(len(truth), np.nan) for name in ("truth", "one_step", "speed")}
+    x, ours = truth[..., 0], one_step[..., 0]
+    for t in range(2, len(truth)):
+        away = x[t - 1] - x[t - 1].mean()
+        chosen = np.abs(away) >= np.quantile(np.abs(away), 1.0 - outer)
+        sign = np.sign(away[chosen])
+        coasting = 2 * x[t - 1, chosen] - x[t - 2, chosen]  # at frame t at constant velocity
+        rows["truth"][t] = np.mean((x[t, chosen] - coasting) * sign) / g
+        rows["one_step"][t] = np.mean((ours[t, chosen] - coasting) * sign) / g
+        rows["speed"][t] = np.mean((x[t - 1, chosen] - x[t - 2, chosen]) * sign)
+    return rows
+
+
 # ---------------------------------------------------------------------------------- rest
 
 
@@ -341,20 +397,22 @@ def rest_by_height(
 ) -> dict[str, np.ndarray]:
     """The vertical acceleration of one step, by height above the floor.
 
-    history: (N, C + 1, 2) the frames the step was predicted from (a settled pile's last
-    frames), predicted: (N, 2) the next frame. Heights above `floor` (the last frame's y minus
-    floor, in radii) are binned at `edges`: [0, e0), [e0, e1), ..., [e_last, inf); a particle
-    below the floor counts in the first bin. Returns "acceleration" (bins,) each bin's mean
-    predicted acceleration in g (positive up; NaN for an empty bin), "truth" (bins,) the same
-    of the acceleration in the history's last three frames (a settled pile's: about 0), and
-    "count" (bins,) its particles.
+    history: (N, C + 1, D) the frames the step was predicted from (a settled pile's last
+    frames), predicted: (N, D) the next frame (y, axis 1, is up). Heights above `floor` (the
+    last frame's y minus floor, in radii) are binned at `edges`: [0, e0), [e0, e1), ...,
+    [e_last, inf); a particle below the floor counts in the first bin. Returns "acceleration"
+    (bins,) each bin's mean predicted acceleration in g (positive up; NaN for an empty bin),
+    "truth" (bins,) the same of the acceleration in the history's last three frames (a settled
+    pile's: about 0), and "count" (bins,) its particles.
     """
     history = np.asarray(history, dtype=np.float64)
     predicted = np.asarray(predicted, dtype=np.float64)
-    if history.ndim != 3 or history.shape[1] < 3 or history.shape[2] != 2:
-        raise ValueError(f"history must be (N, C + 1 >= 3, 2), got {history.shape}")
-    if predicted.shape != (len(history), 2):
-        raise ValueError(f"predicted must be ({len(history)}, 2), got {predicted.shape}")
+    if history.ndim != 3 or history.shape[1] < 3 or history.shape[2] not in (2, 3):
+        raise ValueError(f"history must be (N, C + 1 >= 3, D = 2 or 3), got {history.shape}")
+    if predicted.shape != (len(history), history.shape[2]):
+        raise ValueError(
+            f"predicted must be ({len(history)}, {history.shape[2]}), got {predicted.shape}"
+        )
     y = history[:, :, 1]
     ours = (predicted[:, 1] - 2 * y[:, -1] + y[:, -2]) / g
     truth = (y[:, -1] - 2 * y[:, -2] + y[:, -3]) / g
