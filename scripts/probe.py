@@ -7,6 +7,7 @@
         [--threshold 3]
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
+    python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block of reach and
 floor is a square (a cube in 3D) lattice (`--spacing`, `--size` wide; the defaults are
@@ -32,16 +33,24 @@ tan(--friction-angle) as the context where the model takes one.
   above 6 R): the truth's is about 0, and a model that pushes the pile down by a tenth of g
   sinks it 0.5 m in a second of rollout unless the floor holds it.
 - spread: one step at a time from the truth's frames of each trajectory, the outward
-  horizontal acceleration (g) of the outer fifth of the particles (farthest in x from the
-  mean), the truth's and the model's, over the frames at which they move outward faster than
-  --flowing m/s (a spreading front): a model that brakes a front harder than the sand stops
-  it short of the truth's runout, however well it lands.
+  horizontal acceleration of the outer fifth of the particles (farthest in x from the mean),
+  the truth's and the model's: summed up to the frame of their peak outward speed (the speed
+  a landing or a collapse launches the front with, m/s), and averaged after it over the
+  frames faster than --flowing m/s (how hard the front brakes, g). A model short of either
+  stops short of the truth's runout.
+- collapse: blocks --width wide and --heights high standing at rest on the floor, friction
+  angle --friction-angle, run by the reference MPM (the sand-taichi preset's resolution and
+  box); the launch of `spread` one step at a time from the MPM's frames. A block taller than
+  its angle of repose allows collapses, the harder the taller; a model that holds it as a
+  settled pile (negative launch) cannot reach the runout of a block that starts at rest.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 
 import gns
 import numpy as np
@@ -231,41 +240,87 @@ def rest(args) -> None:
 def spread(args) -> None:
     dataset = gns.data.open_dataset(args.data, args.split)
     print(
-        f"one step from the truth's frames of each {args.split} trajectory: the outer fifth's "
-        f"mean outward acceleration (g) while it spreads faster than {args.flowing} m/s"
+        f"one step at a time from the truth's frames of each {args.split} trajectory, the outer "
+        "fifth's outward speed gained up to its peak (the launch, m/s) and its mean outward "
+        f"acceleration after the peak while faster than {args.flowing} m/s (the braking, g)"
     )
-    print("| model | trajectory | frames | truth | one step | one step / truth |")
-    print("|---|---|---|---|---|---|")
+    print(
+        "| model | trajectory | peak speed (m/s, step) | launch truth / one step (ratio) "
+        "| braking truth / one step |"
+    )
+    print("|---|---|---|---|---|")
     for name in args.models:
         simulator = gns.load_simulator(name).eval()
         stride = simulator.frame_stride_for(dataset.metadata)
         history = simulator.config.model.velocity_history + 1
         g, dt = probes.g_step(simulator), simulator.scene.dt
-        truths, ours = [], []
+        to_speed = probes.GRAVITY * dt  # g steps -> m/s
+        launches, brakings = [], []
         for index, trajectory in enumerate(dataset):
             trajectory = at_frame_stride(trajectory, stride)
             free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
             truth = trajectory.positions.astype(np.float64)
             one_step = np.full_like(truth, np.nan)
             one_step[history:] = one_step_frames(simulator, trajectory, history)
-            r = probes.spreading(truth[:, free], one_step[:, free], g)
-            flowing = np.isfinite(r["one_step"]) & (r["speed"] > args.flowing * dt)
-            if not flowing.any():
-                print(f"| {name} | {index} | 0 | | | |")
-                continue
-            a, b = r["truth"][flowing], r["one_step"][flowing]
-            truths.append(a)
-            ours.append(b)
+            rows = probes.spreading(truth[:, free], one_step[:, free], g)
+            r = probes.launch_and_braking(rows, args.flowing * dt)
+            launch = np.array([r["launch_truth"], r["launch_one_step"]]) * to_speed
+            braking = np.array([r["braking_truth"], r["braking_one_step"]])
+            launches.append(launch)
+            brakings.append(braking)
             print(
-                f"| {name} | {index} | {flowing.sum()} | {a.mean():+.2f} | {b.mean():+.2f} | "
-                f"{b.mean() / a.mean():.2f} |"
+                f"| {name} | {index} | {r['peak_speed'] / dt:.2f} ({r['peak']}) | "
+                f"{launch[0]:+.2f} / {launch[1]:+.2f} ({launch[1] / launch[0]:.2f}) | "
+                f"{braking[0]:+.2f} / {braking[1]:+.2f} |"
             )
-        if truths:
-            a, b = np.concatenate(truths), np.concatenate(ours)
-            print(
-                f"| {name} | all | {len(a)} | {a.mean():+.2f} | {b.mean():+.2f} | "
-                f"{b.mean() / a.mean():.2f} |"
-            )
+        total, mean = np.sum(launches, axis=0), np.nanmean(brakings, axis=0)
+        print(
+            f"| {name} | all (sum; mean) | | {total[0]:+.2f} / {total[1]:+.2f} "
+            f"({total[1] / total[0]:.2f}) | {mean[0]:+.2f} / {mean[1]:+.2f} |"
+        )
+
+
+def collapse(args) -> None:
+    from gns.mpm import Block, MpmScene, Sand, simulate
+
+    simulators = [gns.load_simulator(name).eval() for name in args.models]
+    scene = MpmScene([], context=[0.0])  # the preset's frame and box: [0.1, 0.9]^2
+    steps = {round(s.scene.dt / scene.frame_dt, 6) for s in simulators}
+    if len(steps) != 1 or not float(next(iter(steps))).is_integer():
+        raise ValueError(
+            f"the models step {sorted(s.scene.dt for s in simulators)} s; the probe needs one "
+            f"step, a whole number of the MPM's {scene.frame_dt} s frames"
+        )
+    stride = int(next(iter(steps)))
+    dt = stride * scene.frame_dt
+    to_speed = probes.GRAVITY * dt  # g steps -> m/s
+    print(
+        f"blocks {args.width} wide standing at rest on the floor, friction angle "
+        f"{args.friction_angle:g}, run by our MPM; the outer fifth's outward speed gained to "
+        "its peak (m/s), one step at a time from the MPM's frames"
+    )
+    print("| height | MPM (peak speed m/s, step) | " + " | ".join(args.models) + " |")
+    print("|---" * (len(args.models) + 2) + "|")
+    for height in args.heights:
+        block = Block(
+            Sand(friction_angle_deg=args.friction_angle),
+            lower=((1.0 - args.width) / 2, 0.101),
+            size=(args.width, height),
+        )
+        context = [math.tan(math.radians(args.friction_angle))]
+        mpm = simulate(dataclasses.replace(scene, blocks=[block], context=context), args.frames)
+        trajectory = at_frame_stride(mpm.to_trajectory(), stride)
+        truth = trajectory.positions.astype(np.float64)
+        cells = []
+        for simulator in simulators:
+            history = simulator.config.model.velocity_history + 1
+            one_step = np.full_like(truth, np.nan)
+            one_step[history:] = one_step_frames(simulator, trajectory, history)
+            rows = probes.spreading(truth, one_step, probes.g_step(simulator))
+            r = probes.launch_and_braking(rows, 0.0)
+            cells.append(f"{r['launch_one_step'] * to_speed:+.2f}")
+        mpm_cell = f"{r['launch_truth'] * to_speed:+.2f} ({r['peak_speed'] / dt:.2f}, {r['peak']})"
+        print(f"| {height:g} | {mpm_cell} | " + " | ".join(cells) + " |", flush=True)
 
 
 @torch.no_grad()
@@ -315,6 +370,13 @@ def main() -> None:
     p.add_argument("--split", default="test")
     p.add_argument("--flowing", type=float, default=0.3)
     p.set_defaults(run=spread)
+    p = probes_.add_parser("collapse")
+    p.add_argument("models", nargs="+")
+    p.add_argument("--heights", type=float, nargs="+", default=[0.05, 0.1, 0.2, 0.3])
+    p.add_argument("--width", type=float, default=0.2)
+    p.add_argument("--friction-angle", type=float, default=30.0)
+    p.add_argument("--frames", type=int, default=181, help="MPM frames of 2.5 ms (default 181)")
+    p.set_defaults(run=collapse)
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:

@@ -288,6 +288,35 @@ def test_spreading_reads_the_outward_braking_of_the_outer_particles_only():
         probes.spreading(truth, one_step[1:], G)
 
 
+def test_launch_and_braking_split_a_front_at_its_peak_speed():
+    # The outer particles of a row are launched outward at +2 g for 6 frames (a landing), then
+    # brake at -0.5 g until they stop; a model gives half the launch and brakes as the truth.
+    x0 = np.linspace(0.3, 0.7, 50)
+    side = np.sign(x0 - 0.5)
+    outer = np.abs(x0 - 0.5) >= np.sort(np.abs(x0 - 0.5))[-10]
+    frames, launch_end = 40, 8
+    accel = np.where(np.arange(frames) < launch_end, 2.0, -0.5) * G
+    accel[:2] = 0.0  # frames 0 and 1 carry no acceleration (it arrives at t >= 2)
+    speed = np.maximum(np.cumsum(accel), 0.0)  # x_t - x_{t-1}; it stops at rest
+    path = np.cumsum(speed)
+    truth = np.stack(
+        [x0 + np.where(outer, side * path[:, None], 0.0), np.full((frames, 50), 0.2)], axis=-1
+    )
+    one_step = np.full_like(truth, np.nan)
+    one_step[3:] = truth[3:]
+    launched = 3 <= np.arange(frames)
+    one_step[launched & (np.arange(frames) < launch_end), :, 0] -= np.where(outer, side * G, 0.0)
+    rows = probes.spreading(truth, one_step, G)
+    r = probes.launch_and_braking(rows, flowing=0.1 * G)
+    assert r["peak"] == launch_end and r["peak_speed"] == pytest.approx(12 * G)
+    # From frame 3 (the first with a prediction) to the peak: 5 frames of +2 g, the model's +1 g.
+    assert r["launch_truth"] == pytest.approx(10.0) and r["launch_one_step"] == pytest.approx(5.0)
+    assert r["braking_truth"] == pytest.approx(-0.5)
+    assert r["braking_one_step"] == pytest.approx(-0.5)
+    with pytest.raises(ValueError, match="no frame has a one-step prediction"):
+        probes.launch_and_braking(probes.spreading(truth, truth * np.nan, G), 0.1 * G)
+
+
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "probe.py"
 
 
@@ -314,5 +343,17 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     assert rest[2].startswith("| model | below R | 1-3 R | 3-6 R | above 6 R |"), rest
     assert rest[4].startswith(f"| {run} | ") and rest[4].count("|") == 7, rest
     spread = run_probe("spread", str(run), "--data", str(native), "--flowing", "0")
-    assert spread[1].startswith("| model | trajectory | frames | truth | one step |"), spread
-    assert spread[-1].startswith(f"| {run} | all | "), spread
+    assert spread[1].startswith("| model | trajectory | peak speed (m/s, step) | launch"), spread
+    assert spread[-1].startswith(f"| {run} | all (sum; mean) | "), spread
+
+
+def test_the_collapse_probe_reads_a_taller_block_collapsing_harder_in_the_mpm():
+    """The physics is the oracle: sand (30 degrees) standing 0.2 high on a 0.2 base is past its
+    angle of repose and collapses sideways; 0.05 high, it hardly moves."""
+    lines = run_probe("collapse", "sand2d-taichi", "--heights", "0.05", "0.2", "--frames", "120")
+    assert lines[1] == "| height | MPM (peak speed m/s, step) | sand2d-taichi |", lines
+    rows = [line.split("|")[1:-1] for line in lines[3:]]
+    assert [row[0].strip() for row in rows] == ["0.05", "0.2"], lines
+    low, tall = (float(row[1].split()[0]) for row in rows)
+    assert 0.0 <= low < 0.1 and tall > 0.3, lines
+    assert all(np.isfinite(float(row[2])) for row in rows), lines

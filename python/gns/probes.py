@@ -11,8 +11,9 @@ scripts/probe.py run them):
     landing_timeline  acceleration and density by height band through a block's landing,
                       the truth against the model's one-step predictions and its rollout
     spreading         the outward horizontal acceleration of a deposit's outer particles as it
-                      spreads, the truth against the model's one-step predictions: whether
-                      the model brakes a flowing front as hard as the sand does
+                      spreads, the truth against the model's one-step predictions, and
+    launch_and_braking  from it, the outward speed they gain up to its peak (a landing or a
+                      collapse launches the front) and how hard they brake after it
     rest_by_height    one step of a settled pile from the truth's last frames: the
                       acceleration it predicts by height above the floor (the truth: 0); a
                       model that pushes a pile down sinks it into the floor over a rollout
@@ -49,6 +50,7 @@ __all__ = [
     "hop_counts",
     "landing_frame",
     "landing_timeline",
+    "launch_and_braking",
     "neighbour_counts",
     "probe_block",
     "probe_inputs",
@@ -382,6 +384,38 @@ def spreading(
         rows["one_step"][t] = np.mean((ours[t, chosen] - coasting) * sign) / g
         rows["speed"][t] = np.mean((x[t - 1, chosen] - x[t - 2, chosen]) * sign)
     return rows
+
+
+def launch_and_braking(rows: dict[str, np.ndarray], flowing: float) -> dict[str, float]:
+    """Split a `spreading` record at the outer particles' peak outward speed.
+
+    rows: what `spreading` returns; flowing: a speed (per step) above which they count as
+    flowing. The peak is the frame of the largest "speed" among the frames with a one-step
+    prediction. Returns "peak" (that frame), "peak_speed" (per step), "launch_truth" and
+    "launch_one_step" (the outward accelerations, in g, summed over the frames from the first
+    with a prediction up to the peak: the speed gained, in g steps, by the truth and by the
+    model from the truth's frames), and "braking_truth" and "braking_one_step" (their mean
+    after the peak over the frames faster than `flowing`; NaN if none).
+    """
+    predicted = np.flatnonzero(np.isfinite(rows["one_step"]))
+    if len(predicted) == 0:
+        raise ValueError("no frame has a one-step prediction")
+    first = predicted[0]
+    peak = first + int(np.nanargmax(rows["speed"][first:]))
+    after = (np.arange(len(rows["speed"])) > peak) & (rows["speed"] > flowing)
+    after &= np.isfinite(rows["one_step"])
+
+    def mean_after(values: np.ndarray) -> float:
+        return float(values[after].mean()) if after.any() else math.nan
+
+    return {
+        "peak": int(peak),
+        "peak_speed": float(rows["speed"][peak]),
+        "launch_truth": float(rows["truth"][first:peak].sum()),
+        "launch_one_step": float(rows["one_step"][first:peak].sum()),
+        "braking_truth": mean_after(rows["truth"]),
+        "braking_one_step": mean_after(rows["one_step"]),
+    }
 
 
 # ---------------------------------------------------------------------------------- rest
