@@ -48,7 +48,6 @@ tan(--friction-angle) as the context where the model takes one.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 
@@ -141,7 +140,6 @@ def landing(args) -> None:
     dataset = gns.data.open_dataset(args.data, args.split)
     stride = simulator.frame_stride_for(dataset.metadata)
     g, radius = probes.g_step(simulator), simulator.scene.radius
-    history = simulator.config.model.velocity_history + 1
     chosen = args.trajectories if args.trajectories else range(len(dataset))
     for index in chosen:
         trajectory = at_frame_stride(dataset[index], stride)
@@ -155,8 +153,7 @@ def landing(args) -> None:
             done = err.rollout
         good = done.predicted_trajectory
         rolled[: len(good)] = good
-        one_step = np.full_like(truth, np.nan)
-        one_step[history:] = one_step_frames(simulator, trajectory, history)
+        one_step = one_step_frames(simulator, trajectory)
         r = probes.landing_timeline(
             truth[:, free],
             rolled[:, free],
@@ -252,18 +249,12 @@ def spread(args) -> None:
     for name in args.models:
         simulator = gns.load_simulator(name).eval()
         stride = simulator.frame_stride_for(dataset.metadata)
-        history = simulator.config.model.velocity_history + 1
-        g, dt = probes.g_step(simulator), simulator.scene.dt
+        dt = simulator.scene.dt
         to_speed = probes.GRAVITY * dt  # g steps -> m/s
         launches, brakings = [], []
         for index, trajectory in enumerate(dataset):
             trajectory = at_frame_stride(trajectory, stride)
-            free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
-            truth = trajectory.positions.astype(np.float64)
-            one_step = np.full_like(truth, np.nan)
-            one_step[history:] = one_step_frames(simulator, trajectory, history)
-            rows = probes.spreading(truth[:, free], one_step[:, free], g)
-            r = probes.launch_and_braking(rows, args.flowing * dt)
+            r = front_launch(simulator, trajectory, args.flowing * dt)
             launch = np.array([r["launch_truth"], r["launch_one_step"]]) * to_speed
             braking = np.array([r["braking_truth"], r["braking_one_step"]])
             launches.append(launch)
@@ -284,15 +275,15 @@ def collapse(args) -> None:
     from gns.mpm import Block, MpmScene, Sand, simulate
 
     simulators = [gns.load_simulator(name).eval() for name in args.models]
-    scene = MpmScene([], context=[0.0])  # the preset's frame and box: [0.1, 0.9]^2
-    steps = {round(s.scene.dt / scene.frame_dt, 6) for s in simulators}
+    frame_dt = MpmScene.frame_dt  # the sand-taichi preset's frames and box, [0.1, 0.9]^2
+    steps = {round(s.scene.dt / frame_dt, 6) for s in simulators}
     if len(steps) != 1 or not float(next(iter(steps))).is_integer():
         raise ValueError(
             f"the models step {sorted(s.scene.dt for s in simulators)} s; the probe needs one "
-            f"step, a whole number of the MPM's {scene.frame_dt} s frames"
+            f"step, a whole number of the MPM's {frame_dt} s frames"
         )
     stride = int(next(iter(steps)))
-    dt = stride * scene.frame_dt
+    dt = stride * frame_dt
     to_speed = probes.GRAVITY * dt  # g steps -> m/s
     print(
         f"blocks {args.width} wide standing at rest on the floor, friction angle "
@@ -308,31 +299,39 @@ def collapse(args) -> None:
             size=(args.width, height),
         )
         context = [math.tan(math.radians(args.friction_angle))]
-        mpm = simulate(dataclasses.replace(scene, blocks=[block], context=context), args.frames)
+        mpm = simulate(MpmScene([block], context=context), args.frames)
         trajectory = at_frame_stride(mpm.to_trajectory(), stride)
-        truth = trajectory.positions.astype(np.float64)
         cells = []
         for simulator in simulators:
-            history = simulator.config.model.velocity_history + 1
-            one_step = np.full_like(truth, np.nan)
-            one_step[history:] = one_step_frames(simulator, trajectory, history)
-            rows = probes.spreading(truth, one_step, probes.g_step(simulator))
-            r = probes.launch_and_braking(rows, 0.0)
+            r = front_launch(simulator, trajectory, 0.0)
             cells.append(f"{r['launch_one_step'] * to_speed:+.2f}")
         mpm_cell = f"{r['launch_truth'] * to_speed:+.2f} ({r['peak_speed'] / dt:.2f}, {r['peak']})"
         print(f"| {height:g} | {mpm_cell} | " + " | ".join(cells) + " |", flush=True)
 
 
+def front_launch(simulator, trajectory, flowing: float) -> dict:
+    """probes.launch_and_braking of the trajectory's free particles, the model predicting one
+    step at a time from its frames; flowing: a speed per step."""
+    free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
+    truth = trajectory.positions.astype(np.float64)[:, free]
+    one_step = one_step_frames(simulator, trajectory)[:, free]
+    rows = probes.spreading(truth, one_step, probes.g_step(simulator))
+    return probes.launch_and_braking(rows, flowing)
+
+
 @torch.no_grad()
-def one_step_frames(simulator, trajectory, history: int) -> np.ndarray:
-    """(T - history, N, D): each frame from t = history on, predicted from the truth's
-    frames before it."""
+def one_step_frames(simulator, trajectory) -> np.ndarray:
+    """(T, N, D) float64: each frame t from the model's C + 1 on, predicted from the truth's
+    frames before it; NaN before (no history to predict from)."""
     from gns.data.windows import window_keys
     from gns.evaluate import one_step_predictions
 
+    history = simulator.config.model.velocity_history + 1
     pairs = list(window_keys([trajectory], history))
     predictions = one_step_predictions(simulator, [trajectory], pairs)
-    return np.stack([following.double().numpy() for _, _, following, _ in predictions])
+    frames = np.full(trajectory.positions.shape, np.nan)
+    frames[history:] = np.stack([following.double().numpy() for _, _, following, _ in predictions])
+    return frames
 
 
 def main() -> None:
