@@ -54,9 +54,9 @@ def test_the_stand_in_device_fails_where_cuda_fails(monkeypatch):
     assert transfers.to_device == [(3, 2), (2,)] and transfers.to_host == [(3, 2)] * 3
 
 
-def rich_scene_trajectory(periodic: bool) -> tuple[Scene, Trajectory]:
+def rich_scene_trajectory(periodic: bool, overburden: bool = False) -> tuple[Scene, Trajectory]:
     """Every kind of input: walls (or a periodic axis), two particle types with a kinematic
-    one, a context, a material property."""
+    one, a context, a material property; the overburden (with gravity) where asked."""
     rng = np.random.default_rng(3)
     n, frames = 40, 14
     start = rng.uniform(0.2, 0.8, (n, 2))
@@ -74,6 +74,8 @@ def rich_scene_trajectory(periodic: bool) -> tuple[Scene, Trajectory]:
         periodic=(periodic, False),
         context_size=1,
         material_property_size=1,
+        gravity=(0.0, -1e-4) if overburden else None,
+        overburden=overburden,
     )
     trajectory = Trajectory(
         positions.astype(np.float32),
@@ -95,17 +97,19 @@ def simulator_for(scene: Scene, global_latent: bool, obstacles: bool) -> Learned
     for normalizer in (simulator.velocity_normalizer, simulator.acceleration_normalizer):
         normalizer.update(torch.randn(50, 2, dtype=torch.float64) * 1e-3)
     simulator.context_normalizer.update(torch.tensor([[0.3], [0.5]]))
+    if simulator.overburden_normalizer is not None:
+        simulator.overburden_normalizer.update(torch.tensor([[0.0, 0.0], [6.0, -1e-2]]))
     return simulator
 
 
 @pytest.mark.parametrize(
-    ("periodic", "global_latent", "obstacles"),
-    [(False, False, False), (True, True, True)],
+    ("periodic", "global_latent", "obstacles", "overburden"),
+    [(False, False, False, False), (True, True, True, False), (False, True, False, True)],
 )
 def test_a_rollout_on_the_device_equals_the_cpu_one_and_moves_little(
-    monkeypatch, periodic, global_latent, obstacles
+    monkeypatch, periodic, global_latent, obstacles, overburden
 ):
-    scene, trajectory = rich_scene_trajectory(periodic)
+    scene, trajectory = rich_scene_trajectory(periodic, overburden)
     reference = rollout(simulator_for(scene, global_latent, obstacles), trajectory)
     counts = []
     for steps in (4, 8):

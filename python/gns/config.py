@@ -314,6 +314,8 @@ class SceneConfig:
         walls do; each correction is counted in the rollout's metadata (gns.rollout). Off, the
         paper's way: the network alone keeps the sand in the box. Training targets are the
         data's either way.
+    overburden: add what lies in the column above each particle (gns.overburden; needs
+        gravity): not the paper's, an input for the weight a 2-3 hop neighbourhood cannot see.
     """
 
     radius: float | None = None
@@ -326,6 +328,7 @@ class SceneConfig:
     obstacles: bool | None = None
     obstacle_clip: float | None = None
     enforce_walls: bool = False
+    overburden: bool = False
 
     def __post_init__(self) -> None:
         for name in ("radius", "wall_clip", "obstacle_clip"):

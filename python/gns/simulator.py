@@ -33,6 +33,7 @@ from gns.data.stride import frame_stride
 from gns.model import EncodeProcessDecode
 from gns.noise import sample_noise, wall_push
 from gns.normalization import FixedNormalizer, Normalizer, RunningNormalizer
+from gns.overburden import overburden
 
 __all__ = ["LearnedSimulator", "Scene", "edge_capacity", "pad_edges"]
 
@@ -64,7 +65,9 @@ class Scene:
     come with the data (each trajectory's, metadata.json's "obstacles"). dt: seconds between
     the data's frames (metadata.json's dt), so one step of the model, which is applied to
     frames that far apart (see LearnedSimulator.frame_stride_for); None in checkpoints
-    written before it was recorded.
+    written before it was recorded. overburden: add the count and the upward momentum of the
+    free particles in the column above each particle (gns.overburden, 2 features, half-width
+    R / 2, up against `gravity`).
     """
 
     dim: int
@@ -81,6 +84,7 @@ class Scene:
     dt: float | None = None
     obstacles: bool = False
     obstacle_clip: float = 1.0
+    overburden: bool = False
 
     def __post_init__(self) -> None:
         if self.dim not in (2, 3):
@@ -108,6 +112,11 @@ class Scene:
         for name in ("wall_clip", "obstacle_clip"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"Scene.{name} must be positive, got {getattr(self, name)}")
+        if self.overburden and (self.gravity is None or any(self.periodic)):
+            raise ValueError(
+                "Scene.overburden needs the scene's gravity (scene.gravity, for which way is up)"
+                " and no periodic axis (the column above a particle does not wrap)"
+            )
         if self.dt is not None and not (math.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"Scene.dt must be a positive number of seconds, got {self.dt}")
 
@@ -174,6 +183,7 @@ class Scene:
             # Without obstacles the clip means nothing: the default, so that the scene equals
             # that of a model saved before obstacle features existed (fine-tuning compares them).
             obstacle_clip=(config.obstacle_clip or wall_clip) if obstacles else 1.0,
+            overburden=config.overburden,
         )
 
     @classmethod
@@ -279,6 +289,7 @@ class LearnedSimulator(nn.Module):
     particle_type_ids: Tensor
     kinematic_type_ids: Tensor
     gravity: Tensor
+    up: Tensor
     bounds: Tensor
     periodic_axes: Tensor
 
@@ -299,6 +310,11 @@ class LearnedSimulator(nn.Module):
         dim, model_config = scene.dim, config.model
         if model_config.add_gravity and scene.gravity is None:
             raise ValueError("model.add_gravity needs the scene's gravity (scene.gravity)")
+        if scene.overburden and config.normalization.source != "running":
+            raise ValueError(
+                "scene.overburden needs normalization.source = 'running' (no dataset "
+                "statistics describe it)"
+            )
         for o in self.obstacles:
             if o.dim != dim:
                 raise ValueError(f"obstacle {o!r} is {o.dim}D but the scene is {dim}D")
@@ -316,6 +332,9 @@ class LearnedSimulator(nn.Module):
         self.register_buffer("bounds", bounds)
         # Not saved: it follows from the scene, and checkpoints predate it.
         self.register_buffer("periodic_axes", torch.tensor(scene.periodic), persistent=False)
+        # Which way is up for the overburden: against gravity (follows from the scene too).
+        up = [-g for g in scene.gravity] if scene.overburden and scene.gravity else [0.0] * dim
+        self.register_buffer("up", torch.tensor(up, dtype=torch.float64), persistent=False)
         # One radius-graph search for every step, keeping its buffers between them: 4-9% less
         # time in the graph part than a fresh search per call at 1,100-8,000 2D particles
         # (docs/performance.md, "One searcher between steps"). Not state: copies start empty.
@@ -333,11 +352,16 @@ class LearnedSimulator(nn.Module):
         if scene.context_size:
             self.context_normalizer = self._context_normalizer(statistics)
 
+        self.overburden_normalizer: Normalizer | None = None
+        if scene.overburden:  # no dataset statistics describe it (checked above)
+            self.overburden_normalizer = RunningNormalizer(2, config.normalization.min_std)
+
         global_size = scene.context_size if model_config.global_latent else 0
         self.node_input_size = (
             model_config.velocity_history * dim
             + 2 * len(scene.wall_axes)
             + (dim if scene.obstacles else 0)
+            + (2 if scene.overburden else 0)
             + (scene.context_size - global_size)
             + scene.material_property_size
             + embedding_size
@@ -553,6 +577,9 @@ class LearnedSimulator(nn.Module):
             distances.append(self._obstacle_features(host, n_node, n_graphs, obstacles))
         if distances:
             nodes.append(torch.cat(distances, dim=-1).to(device, dtype))
+        if self.overburden_normalizer is not None:
+            raw = self._overburden(position_sequence, particle_type, n_node)
+            nodes.append(self.overburden_normalizer.normalize(raw))
 
         global_features = None
         if self.context_normalizer is not None:
@@ -620,6 +647,20 @@ class LearnedSimulator(nn.Module):
             for part, shapes in zip(torch.split(host, counts), obstacles, strict=True)
         ]
         return torch.cat(parts)
+
+    def _overburden(
+        self, position_sequence: Tensor, particle_type: Tensor, n_node: Tensor | None
+    ) -> Tensor:
+        """(N, 2) raw overburden features (gns.overburden) of the most recent positions."""
+        x = position_sequence.detach()
+        return overburden(
+            x[:, -1],
+            x[:, -1] - x[:, -2],
+            self.up,
+            self.scene.radius / 2,
+            ~self.kinematic_mask(particle_type),
+            n_node,
+        )
 
     @staticmethod
     def _per_node(per_graph: Tensor, n_node: Tensor | None, n: int) -> Tensor:
@@ -808,6 +849,9 @@ class LearnedSimulator(nn.Module):
         steps = velocities.shape[1]
         self.velocity_normalizer.update(velocities, free[:, None].expand(-1, steps))
         self.acceleration_normalizer.update(acceleration, free)
+        if self.overburden_normalizer is not None:
+            raw = self._overburden(noisy_position_sequence, particle_type, n_node)
+            self.overburden_normalizer.update(raw, free)
         if self.context_normalizer is not None and context is not None:
             n_graphs = 1 if n_node is None else int(n_node.shape[0])
             rows = _as_rows(context, n_graphs, self.scene.context_size, "context")
