@@ -107,10 +107,10 @@ def block(width, height, spacing=0.01, steps=7):
     return grid[:, None, :].expand(-1, steps, -1).clone(), torch.full((len(grid),), 6)
 
 
-def test_the_base_of_a_taller_block_reads_more_weight(tmp_path):
+def test_the_base_of_a_taller_block_reads_more_weight():
     """Two more inputs; a training step gives them running statistics; the base of a block
-    three times as tall reads three times the count (raw), so a larger normalised input; and
-    the flag and the statistics survive a checkpoint."""
+    reads the rows above it (raw), so a taller block's a larger normalised input; and the flag
+    and the statistics survive a checkpoint."""
     cfg = Config(model=TINY)
     plain = LearnedSimulator(sand_scene(overburden=False), cfg)
     sim = LearnedSimulator(sand_scene(), cfg)
