@@ -2,13 +2,17 @@
 
 A 7.5 ms sand step stops a landing block in one step, and a block standing on the floor
 collapses harder the taller it is: both depend on the column above a particle (its weight, and
-the momentum still coming down), 13 R and more above the base. The network's influence fades
-within 2-3 hops (docs/probes.md, "reach"), so the base cannot learn how much sand stands on it.
-This feature hands it over directly: for each particle i, over the free particles j in the
-vertical column above it (up = against gravity; the column's half-width is `half_width`),
+the momentum still coming down), 13 R and more above the base, while the network's influence
+fades within 2-3 hops (docs/probes.md, "reach"). This feature hands the column over directly:
+for each particle i, over the free particles j in the vertical column above it (up = against
+gravity; the column's half-width is `half_width`),
 
     count_i    = |{j : (x_j - x_i) . up > 0, lateral distance < half_width}|
     momentum_i = sum over those j of v_j . up   (their most recent velocity, per frame)
+
+Measured on sand (docs/sand-ablation.md, session 31): the network reads it and a settled pile
+is no longer pushed up, but the collapse and the landing's launch did not need it (a model
+without it learns the collapse from data that weighs it). Off by default (scene.overburden).
 
 Graphs of a batch are kept apart (n_node). The candidates of each particle are those within
 half_width along one lateral axis: after a sort along it, a contiguous run (searchsorted), so the
