@@ -11,7 +11,8 @@
 #
 # OUT receives: model.pt (the exported model: the best checkpoint on validation, or the mean
 # of the last K with --average K), last.pt (the last checkpoint with its optimizer state:
-# --resume-from it continues the run exactly, here or on another machine), train.csv and
+# --resume-from it continues the run: exactly on another GPU, with a fresh noise stream on a
+# CPU, since the two draw noise differently), train.csv and
 # valid.csv (this stage's rows), eval_test.json (gns eval on --test-data's test split; default
 # --valid-data), stage.json (device, torch, minutes, steps, windows seen, the commands) and
 # stage.log (all the commands printed). Data, run folder and rollouts stay in --work (default

@@ -121,6 +121,32 @@ def test_resume_continues_exactly(tmp_path, settings):
     assert count > 0
 
 
+def test_a_run_trained_on_a_gpu_resumes_on_the_cpu(tmp_path, capsys):
+    # A CUDA run's checkpoint holds its noise generator's state: 16 bytes (Philox's seed and
+    # offset), which the CPU's generator (5056 bytes) cannot take. Make such a checkpoint from
+    # a CPU run and resume it here: the run goes on, says so, and is the same run each time.
+    data = make_dataset(tmp_path / "data")
+    train(data, tmp_path / "gpu", config(9), progress=False)
+    path = latest_checkpoint(tmp_path / "gpu")
+    state = load_checkpoint(path, resume=True)
+    cuda_state = torch.tensor([7, 0, 0, 0, 0, 0, 0, 0, 24, 0, 0, 0, 0, 0, 0, 0], dtype=torch.uint8)
+    state["noise_generator"] = [cuda_state]
+    save_checkpoint(path, state)
+    for copy in ("a", "b"):
+        (tmp_path / copy / "checkpoints").mkdir(parents=True)
+        (tmp_path / copy / "checkpoints" / path.name).write_bytes(path.read_bytes())
+    capsys.readouterr()
+    a = train(data, tmp_path / "a", config(15), resume=True, progress=False)
+    assert "noise stream was drawn on another kind of device than cpu" in capsys.readouterr().err
+    b = train(data, tmp_path / "b", config(15), resume=True, progress=False)
+    assert load_checkpoint(latest_checkpoint(tmp_path / "a"))["step"] == 15
+    resumed_a, resumed_b = parameters(a), parameters(b)
+    for key, value in resumed_a.items():
+        assert torch.equal(value, resumed_b[key]), key
+    # The optimiser state came through: the weights moved on from the step-9 weights.
+    assert any(not torch.equal(v, state["model"][k]) for k, v in resumed_a.items())
+
+
 def test_resume_from_a_mid_run_checkpoint_redoes_later_steps_and_logs(tmp_path):
     data = make_dataset(tmp_path / "data")
     train(data, tmp_path / "run", config(12), progress=False)

@@ -520,9 +520,23 @@ def train(
             )
         optimizer.load_state_dict(checkpoint["optimizer"])
         sampler.load_state_dict(checkpoint["sampler"])
-        generator.set_state(checkpoint["noise_generator"][rank].to(torch.uint8))
         start = int(checkpoint["step"])
         best = checkpoint.get("best")
+        saved_noise = checkpoint["noise_generator"][rank].to(torch.uint8)
+        if saved_noise.numel() == generator.get_state().numel():
+            generator.set_state(saved_noise)
+        else:
+            # Another kind of device drew this stream (a CUDA generator's state is 16 bytes, the
+            # CPU's 5056) and it cannot go on here. A new one from the run's seed, rank and step,
+            # so that every resume from this checkpoint on this kind of device is the same run.
+            generator.manual_seed((tc.seed * 1_000_003 + rank) * 1_000_033 + start)
+            if leader:
+                sys.stderr.write(
+                    f"--resume: the checkpoint's noise stream was drawn on another kind of "
+                    f"device than {device.type}; a new one starts at step {start} (weights, "
+                    "optimizer, sampler and schedule go on; the noise differs from an "
+                    "uninterrupted run's)\n"
+                )
 
     if leader:
         remove_stale_temporaries(run_dir)
