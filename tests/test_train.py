@@ -143,7 +143,7 @@ def test_a_run_trained_on_a_gpu_resumes_on_the_cpu(tmp_path, capsys):
     resumed_a, resumed_b = parameters(a), parameters(b)
     for key, value in resumed_a.items():
         assert torch.equal(value, resumed_b[key]), key
-    # The optimiser state came through: the weights moved on from the step-9 weights.
+    # Training went on: the weights moved on from the step-9 weights.
     assert any(not torch.equal(v, state["model"][k]) for k, v in resumed_a.items())
 
 

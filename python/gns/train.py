@@ -507,7 +507,8 @@ def train(
         early_repeat=tc.early_repeat,
     )
     generator = torch.Generator(device=device)
-    generator.manual_seed(tc.seed * 1_000_003 + rank)
+    noise_seed = tc.seed * 1_000_003 + rank
+    generator.manual_seed(noise_seed)
     start = 0
     # {"step", "value", "in_box"} of best.pt, as chosen by better_validation.
     best: dict[str, Any] | None = None
@@ -529,7 +530,7 @@ def train(
             # Another kind of device drew this stream (a CUDA generator's state is 16 bytes, the
             # CPU's 5056) and it cannot go on here. A new one from the run's seed, rank and step,
             # so that every resume from this checkpoint on this kind of device is the same run.
-            generator.manual_seed((tc.seed * 1_000_003 + rank) * 1_000_033 + start)
+            generator.manual_seed(noise_seed * 1_000_033 + start)
             if leader:
                 sys.stderr.write(
                     f"--resume: the checkpoint's noise stream was drawn on another kind of "
