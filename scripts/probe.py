@@ -7,6 +7,7 @@
         [--threshold 3]
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
+        [--near-floor GAP [--start-speed 0.5]]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block of reach and
@@ -37,7 +38,9 @@ tan(--friction-angle) as the context where the model takes one.
   the truth's and the model's: summed up to the frame of their peak outward speed (the speed
   a landing or a collapse launches the front with, m/s), and averaged after it over the
   frames faster than --flowing m/s (how hard the front brakes, g). A model short of either
-  stops short of the truth's runout.
+  stops short of the truth's runout. --near-floor GAP keeps only the trajectories whose block
+  starts at most GAP above the floor, slower than --start-speed m/s (a short drop, then a
+  collapse under its own weight), e.g. in the training data: `--split train`.
 - collapse: blocks --width wide and --heights high standing at rest on the floor, friction
   angle --friction-angle, run by the reference MPM (the sand-taichi preset's resolution and
   box); the launch of `spread` one step at a time from the MPM's frames. A block taller than
@@ -254,6 +257,8 @@ def spread(args) -> None:
         launches, brakings = [], []
         for index, trajectory in enumerate(dataset):
             trajectory = at_frame_stride(trajectory, stride)
+            if args.near_floor is not None and not near_floor(simulator, trajectory, args):
+                continue
             r = front_launch(simulator, trajectory, args.flowing * dt)
             launch = np.array([r["launch_truth"], r["launch_one_step"]]) * to_speed
             braking = np.array([r["braking_truth"], r["braking_one_step"]])
@@ -264,11 +269,30 @@ def spread(args) -> None:
                 f"{launch[0]:+.2f} / {launch[1]:+.2f} ({launch[1] / launch[0]:.2f}) | "
                 f"{braking[0]:+.2f} / {braking[1]:+.2f} |"
             )
+        if not launches:
+            raise ValueError(
+                f"no {args.split} trajectory starts within {args.near_floor} of the floor "
+                f"slower than {args.start_speed} m/s"
+            )
         total, mean = np.sum(launches, axis=0), np.nanmean(brakings, axis=0)
         print(
             f"| {name} | all (sum; mean) | | {total[0]:+.2f} / {total[1]:+.2f} "
             f"({total[1] / total[0]:.2f}) | {mean[0]:+.2f} / {mean[1]:+.2f} |"
         )
+
+
+def near_floor(simulator, trajectory, args) -> bool:
+    """spread --near-floor: the trajectory starts within args.near_floor of the model's floor,
+    slower than args.start_speed m/s (probes.starts_near_floor)."""
+    if simulator.scene.bounds is None:
+        raise ValueError("--near-floor needs a model with a box (scene.bounds)")
+    free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
+    return probes.starts_near_floor(
+        trajectory.positions[:, free],
+        simulator.scene.bounds[1][0],
+        args.near_floor,
+        args.start_speed * simulator.scene.dt,
+    )
 
 
 def collapse(args) -> None:
@@ -368,6 +392,10 @@ def main() -> None:
     p.add_argument("--data", required=True)
     p.add_argument("--split", default="test")
     p.add_argument("--flowing", type=float, default=0.3)
+    p.add_argument(
+        "--near-floor", type=float, help="only trajectories starting this close to the floor"
+    )
+    p.add_argument("--start-speed", type=float, default=0.5, help="m/s; with --near-floor")
     p.set_defaults(run=spread)
     p = probes_.add_parser("collapse")
     p.add_argument("models", nargs="+")

@@ -148,3 +148,35 @@ def test_cli_convert_and_error_exit(tmp_path, capsys):
     capsys.readouterr()
     assert main(["stats", str(tmp_path / "nowhere")]) == 2
     assert "no such file or folder" in capsys.readouterr().err
+
+
+def test_convert_writes_several_sources_one_after_another_with_their_whole_statistics(tmp_path):
+    a, b = dataset_items(0), dataset_items(1)[:2]
+    # Each source's metadata carries statistics of its own, which the whole must not keep.
+    for name, items in (("a", a), ("b", b)):
+        write_metadata(
+            tmp_path / name,
+            metadata_dict(vel_mean=[0, 0], vel_std=[9, 9], acc_mean=[0, 0], acc_std=[9, 9]),
+        )
+        write_npz(tmp_path / name / "train.npz", items)
+    src = [str(tmp_path / n) for n in ("a", "b", "b")]  # b twice: its windows twice as often
+    assert main(["convert", *src, str(tmp_path / "ab"), "--to", "h5"]) == 0
+    written = list(open_dataset(tmp_path / "ab"))
+    assert len(written) == 4 + 2 + 2
+    for got, expected in zip(written, a + b + b, strict=True):
+        np.testing.assert_array_equal(got.positions, expected.positions)
+    meta = open_dataset(tmp_path / "ab").metadata
+    _, vs, _, as_, _, _ = numpy_statistics(a + b + b)
+    np.testing.assert_allclose(meta.vel_std, vs, rtol=1e-8)
+    np.testing.assert_allclose(meta.acc_std, as_, rtol=1e-8)
+
+
+def test_convert_refuses_sources_of_different_scenes_and_writes_nothing(tmp_path, capsys):
+    write_metadata(tmp_path / "a", metadata_dict())
+    write_npz(tmp_path / "a" / "train.npz", dataset_items(0))
+    write_metadata(tmp_path / "b", metadata_dict(dt=0.0075))
+    write_npz(tmp_path / "b" / "train.npz", dataset_items(1))
+    args = ["convert", str(tmp_path / "a"), str(tmp_path / "b"), str(tmp_path / "ab")]
+    assert main([*args, "--to", "h5"]) == 2
+    assert "its dt is 0.0075 but" in capsys.readouterr().err
+    assert not (tmp_path / "ab").exists()

@@ -74,8 +74,8 @@ def assert_apart_inside_the_walls(boxes):
 
 # The 3D presets are tested in test_generate_3d.py.
 PRESETS_2D = sorted(p for p in presets.PRESETS if preset_scene_dim(p) == 2)
-# sand-taichi keeps sand2d-taichi's own resolution and layout (test below).
-SHARED_RESOLUTION = sorted(set(PRESETS_2D) - {"sand-taichi", "waterdrop-xl"})
+# sand-taichi (and -floor) keep sand2d-taichi's own resolution and layout (tests below).
+SHARED_RESOLUTION = sorted(set(PRESETS_2D) - {"sand-taichi", "sand-taichi-floor", "waterdrop-xl"})
 
 
 @pytest.mark.parametrize("preset", SHARED_RESOLUTION)
@@ -133,6 +133,23 @@ def test_sand_taichi_draws_one_block_at_rest_or_thrown_at_taichis_resolution():
         assert scene.context == [pytest.approx(math.tan(math.radians(angle)))]
         assert max(map(abs, block.velocity)) <= 1.0
         thrown.append(block.velocity != (0.0, 0.0))
+    assert 6 <= sum(thrown) <= 18, "about half thrown"
+
+
+def test_sand_taichi_floor_draws_the_same_blocks_starting_just_above_the_floor():
+    thrown, heights = [], []
+    for index in range(24):
+        scene, frames, _ = gen.preset_scene("sand-taichi-floor", 5, "train", index)
+        assert frames == 350 and (scene.grid, scene.spacing) == (64, 1 / 128)
+        ((lower, size),) = rects(scene)
+        assert np.all(size == 0.2) and 0.105 <= lower[0] <= 0.695
+        heights.append(lower[1])
+        (block,) = scene.blocks
+        assert 20 <= block.material.friction_angle_deg <= 45
+        assert max(map(abs, block.velocity)) <= 1.0
+        thrown.append(block.velocity != (0.0, 0.0))
+    assert 0.105 <= min(heights) and max(heights) <= 0.15
+    assert max(heights) - min(heights) > 0.03, "spread over the band, not one height"
     assert 6 <= sum(thrown) <= 18, "about half thrown"
 
 

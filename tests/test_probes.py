@@ -317,6 +317,24 @@ def test_launch_and_braking_split_a_front_at_its_peak_speed():
         probes.launch_and_braking(probes.spreading(truth, truth * np.nan, G), 0.1 * G)
 
 
+def test_starts_near_floor_takes_a_low_slow_block_only():
+    # A 0.2 block on a lattice, its lowest row 0.02 above a floor at 0.1, two frames.
+    block = lattice((0.3, 0.12), (0.2, 0.2), SPACING)
+
+    def frames(velocity):  # per frame
+        return np.stack([block, block + np.asarray(velocity)])
+
+    at_rest, thrown = frames((0.0, 0.0)), frames((0.006, -0.0045))  # 1 m/s at 7.5 ms
+    assert probes.starts_near_floor(at_rest, 0.1, gap=0.025, speed=0.5 * DT)
+    assert not probes.starts_near_floor(at_rest, 0.1, gap=0.015, speed=0.5 * DT)
+    assert not probes.starts_near_floor(thrown, 0.1, gap=0.025, speed=0.5 * DT)
+    assert probes.starts_near_floor(thrown, 0.1, gap=0.025, speed=1.01 * DT)
+    with pytest.raises(ValueError, match=r"\(T >= 2, N, D >= 2\)"):
+        probes.starts_near_floor(at_rest[:1], 0.1, 0.025, 0.0)
+    with pytest.raises(ValueError, match="gap and speed must be >= 0, got -0.1 and 0.0"):
+        probes.starts_near_floor(at_rest, 0.1, -0.1, 0.0)
+
+
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "probe.py"
 
 
@@ -345,6 +363,20 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     spread = run_probe("spread", str(run), "--data", str(native), "--flowing", "0")
     assert spread[1].startswith("| model | trajectory | peak speed (m/s, step) | launch"), spread
     assert spread[-1].startswith(f"| {run} | all (sum; mean) | "), spread
+    # Every trajectory starts within 10 of the floor slower than 100 m/s: the same table.
+    near = run_probe(
+        "spread",
+        str(run),
+        "--data",
+        str(native),
+        "--flowing",
+        "0",
+        "--near-floor",
+        "10",
+        "--start-speed",
+        "100",
+    )
+    assert near == spread
 
 
 def test_the_collapse_probe_reads_a_taller_block_collapsing_harder_in_the_mpm():

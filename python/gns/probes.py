@@ -14,6 +14,8 @@ scripts/probe.py run them):
                       spreads, the truth against the model's one-step predictions, and
     launch_and_braking  from it, the outward speed they gain up to its peak (a landing or a
                       collapse launches the front) and how hard they brake after it
+    starts_near_floor whether a trajectory starts as a block just above the floor and slow:
+                      the regime (a short drop, then a collapse) to probe on its own
     rest_by_height    one step of a settled pile from the truth's last frames: the
                       acceleration it predicts by height above the floor (the truth: 0); a
                       model that pushes a pile down sinks it into the floor over a rollout
@@ -57,6 +59,7 @@ __all__ = [
     "reach_by_hop",
     "rest_by_height",
     "spreading",
+    "starts_near_floor",
     "untrained_copy",
 ]
 
@@ -459,3 +462,23 @@ def rest_by_height(
             return total / count
 
     return {"acceleration": mean(ours), "truth": mean(truth), "count": count}
+
+
+def starts_near_floor(positions: np.ndarray, floor: float, gap: float, speed: float) -> bool:
+    """Whether a trajectory starts near the floor and slow: the lowest particle of its first
+    frame at most `gap` above `floor` (y, axis 1), and the particles' mean displacement from
+    frame 0 to 1 at most `speed` (per frame) long.
+
+    positions: (T >= 2, N, D). Such a block lands within a few frames at low speed, and what
+    follows is its collapse, driven by its own weight rather than by an impact: a regime that
+    is rare in data of blocks dropped anywhere in a box, and a model can brake it while it
+    launches every high landing right.
+    """
+    frames = np.asarray(positions, dtype=np.float64)
+    if frames.ndim != 3 or frames.shape[0] < 2 or frames.shape[2] < 2:
+        raise ValueError(f"positions must be (T >= 2, N, D >= 2), got {frames.shape}")
+    if not (gap >= 0.0 and speed >= 0.0):
+        raise ValueError(f"gap and speed must be >= 0, got {gap} and {speed}")
+    lowest = float(frames[0, :, 1].min()) - floor
+    moved = float(np.linalg.norm((frames[1] - frames[0]).mean(axis=0)))
+    return lowest <= gap and moved <= speed

@@ -44,8 +44,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     validate.add_argument("path", type=Path)
     validate.set_defaults(handler=run_validate)
 
-    conv = sub.add_parser("convert", help="rewrite a dataset in another layout (atomically)")
-    conv.add_argument("src", type=Path)
+    conv = sub.add_parser(
+        "convert",
+        help="rewrite a dataset in another layout (atomically)",
+        description="Several SRC are written one after another into each split (the same "
+        "scene; a source named k times is written k times), the statistics computed anew.",
+    )
+    conv.add_argument("src", type=Path, nargs="+")
     conv.add_argument("dst", type=Path, help="new folder (must not exist, or be empty)")
     conv.add_argument("--to", required=True, choices=TARGETS)
     conv.add_argument("--splits", nargs="*", default=None, help="default: every split present")

@@ -15,12 +15,19 @@ rollout k times shorter. The train split keeps every phase (frames p, p + k, ...
 its own trajectory, so no frame of the training data is lost); the other splits keep phase 0, so
 a rollout still starts at the first frame. Every output trajectory has the same length, that of
 phase k - 1, and the statistics are computed anew from the strided train split.
+
+Several sources are written one after another into each split, e.g. data of a rare regime
+added to a training set (a source named k times is written k times: its windows are then
+drawn k times as often). They must describe the same scene (dimension, box, time step,
+trajectory length, connectivity radius, kinematic types, periodicity), and the statistics are
+computed anew from the whole train split written.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -93,26 +100,36 @@ def _writer(to: str) -> Callable[[Path, Iterable[Trajectory]], int]:
 
 
 def convert(
-    src: str | os.PathLike[str],
+    src: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
     dst: str | os.PathLike[str],
     to: str,
     *,
     splits: Iterable[str] | None = None,
     frame_stride: int = 1,
 ) -> dict[str, int]:
-    """Write the dataset at `src` to the new folder `dst` in layout `to`.
+    """Write the dataset at `src` (or several, one after another) to the new folder `dst` in
+    layout `to`.
 
     Returns the number of trajectories written per split. Missing statistics are computed from
-    the train split while it is written. `dst` must not exist or be an empty folder.
-    `frame_stride` > 1 subsamples time as the module docstring says.
+    the train split while it is written (always, from several sources). `dst` must not exist or
+    be an empty folder. `frame_stride` > 1 subsamples time as the module docstring says.
+    Default `splits`: those every source has.
     """
     if to not in TARGETS:
         raise ValueError(f"unknown target layout {to!r}; expected one of {TARGETS}")
     if isinstance(frame_stride, bool) or not isinstance(frame_stride, int) or frame_stride < 1:
         raise ValueError(f"frame_stride must be a positive integer, got {frame_stride!r}")
-    chosen = list(splits) if splits is not None else available_splits(src)
+    sources = [src] if isinstance(src, (str, os.PathLike)) else list(src)
+    if not sources:
+        raise ValueError("no source dataset to convert")
+    present = [set(available_splits(source)) for source in sources]
+    chosen = (
+        list(splits)
+        if splits is not None
+        else [s for s in available_splits(sources[0]) if all(s in p for p in present)]
+    )
     if not chosen:
-        raise DatasetError(src, "no splits to convert")
+        raise DatasetError(sources[0], "no splits to convert (none that every source has)")
     metadata: Metadata | None = None
     counts: dict[str, int] = {}
     accumulator: StatisticsAccumulator | None = None
@@ -123,8 +140,14 @@ def convert(
     try:
         with atomic_folder(dst) as tmp:
             for split in chosen:
-                dataset = open_dataset(src, split)
-                metadata = metadata or _strided_metadata(dataset.metadata, frame_stride)
+                datasets = [open_dataset(source, split) for source in sources]
+                for other in datasets[1:]:
+                    _check_same_scene(datasets[0].metadata, other.metadata)
+                if metadata is None:
+                    metadata = _strided_metadata(datasets[0].metadata, frame_stride)
+                    if len(sources) > 1:  # the first source's statistics are not the whole's
+                        metadata = _without_statistics(metadata)
+                dataset = itertools.chain.from_iterable(datasets)
                 if split == "train":
                     accumulator = StatisticsAccumulator(
                         metadata.kinematic_particle_types, metadata.period
@@ -156,6 +179,40 @@ def convert(
     except FileExistsError as err:
         raise DatasetError(dst, str(err)) from err
     return counts
+
+
+# What several sources written into one dataset must share.
+_SCENE_FIELDS = (
+    "dim",
+    "bounds",
+    "dt",
+    "sequence_length",
+    "default_connectivity_radius",
+    "kinematic_particle_types",
+    "periodic_boundary_conditions",
+)
+
+
+def _check_same_scene(first: Metadata, other: Metadata) -> None:
+    for name in _SCENE_FIELDS:
+        a, b = getattr(first, name), getattr(other, name)
+        if a != b:
+            raise DatasetError(
+                other.source,
+                f"its {name} is {b!r} but {first.source}'s is {a!r}: sources written into one "
+                "dataset must describe the same scene",
+            )
+
+
+def _without_statistics(metadata: Metadata) -> Metadata:
+    return metadata.replace(
+        vel_mean=None,
+        vel_std=None,
+        acc_mean=None,
+        acc_std=None,
+        context_mean=None,
+        context_std=None,
+    )
 
 
 def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
