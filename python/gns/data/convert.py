@@ -122,11 +122,11 @@ def convert(
     sources = [src] if isinstance(src, (str, os.PathLike)) else list(src)
     if not sources:
         raise ValueError("no source dataset to convert")
-    present = [set(available_splits(source)) for source in sources]
+    others = [available_splits(source) for source in sources[1:]]
     chosen = (
         list(splits)
         if splits is not None
-        else [s for s in available_splits(sources[0]) if all(s in p for p in present)]
+        else [s for s in available_splits(sources[0]) if all(s in o for o in others)]
     )
     if not chosen:
         raise DatasetError(sources[0], "no splits to convert (none that every source has)")

@@ -420,11 +420,7 @@ def sand_taichi(rng: np.random.Generator) -> tuple[MpmScene, int]:
     """One 0.2 x 0.2 block of sand, friction angle U(20, 45) degrees given as tan(angle) (as
     `continuous`), half at rest and half thrown, at sand2d-taichi's resolution (grid 64, 4
     particles a cell, spacing 1/128): training data for a model of that dataset."""
-    angle = float(rng.uniform(20.0, 45.0))
-    # 0.005 inside the walls: Taichi's blocks come as close as 0.101.
-    lo, hi = WALLS[0][0] + MARGIN / 4, WALLS[0][1] - MARGIN / 4 - TAICHI_SIDE
-    lower = rng.uniform(lo, hi, 2)
-    return _taichi_scene(rng, angle, lower), TAICHI_FRAMES
+    return _taichi_block(rng, WALLS[1][1] - MARGIN / 4 - TAICHI_SIDE), TAICHI_FRAMES
 
 
 # sand-taichi-floor's blocks start with their lower edge at most this far above the floor.
@@ -435,15 +431,16 @@ def sand_taichi_floor(rng: np.random.Generator) -> tuple[MpmScene, int]:
     """sand-taichi's block with its lower edge 0.005-0.05 above the floor: a short drop, then a
     collapse under its own weight (sand2d-taichi's sand_04, 13, 33), a regime that sand-taichi
     draws in 1 trajectory of 13 and its models brake (docs/probes.md)."""
+    return _taichi_block(rng, WALLS[1][0] + TAICHI_FLOOR_GAP), TAICHI_FRAMES
+
+
+def _taichi_block(rng: np.random.Generator, top: float) -> MpmScene:
+    """The block anywhere in x, its lower edge at most `top` high, at rest or (half the draws)
+    thrown at U(-1, 1) m/s per axis."""
     angle = float(rng.uniform(20.0, 45.0))
+    # 0.005 inside the walls: Taichi's blocks come as close as 0.101.
     lo, hi = WALLS[0][0] + MARGIN / 4, WALLS[0][1] - MARGIN / 4 - TAICHI_SIDE
-    x = rng.uniform(lo, hi)
-    y = rng.uniform(lo, WALLS[1][0] + TAICHI_FLOOR_GAP)
-    return _taichi_scene(rng, angle, (x, y)), TAICHI_FRAMES
-
-
-def _taichi_scene(rng: np.random.Generator, angle: float, lower: Sequence[float]) -> MpmScene:
-    """The block at `lower`, at rest or (half the draws) thrown at U(-1, 1) m/s per axis."""
+    lower = rng.uniform((lo, lo), (hi, top))
     thrown = rng.random() < 0.5
     velocity = rng.uniform(-TAICHI_SPEED, TAICHI_SPEED, 2) if thrown else np.zeros(2)
     block = Block(
