@@ -523,19 +523,45 @@ def test_validation_on_another_dataset_at_finer_frames(tmp_path):
     train(tmp_path / "converted", tmp_path / "b", settings, progress=False)
     ours, theirs = read_csv(tmp_path / "a" / "valid.csv"), read_csv(tmp_path / "b" / "valid.csv")
     assert len(ours) == 2 and ours == theirs
-    # A resume validates on the recorded data, and refuses another.
+    # A resume validates on the recorded data; at another path (the run moved machines) on the
+    # same trajectories (here the converted folder's valid split: the same frames); never on
+    # other trajectories (the native data with one particle moved, at the recorded path's
+    # name elsewhere).
     train(tmp_path / "converted", tmp_path / "a", None, steps=6, resume=True, progress=False)
     assert [row["step"] for row in read_csv(tmp_path / "a" / "valid.csv")] == ["2", "4", "6"]
-    with pytest.raises(ValueError, match="validated on .*native, not on .*converted"):
+    resume = dict(resume=True, progress=False)
+    train(
+        tmp_path / "converted",
+        tmp_path / "a",
+        None,
+        steps=8,
+        **resume,
+        valid_data=tmp_path / "converted",
+    )
+    assert [row["step"] for row in read_csv(tmp_path / "a" / "valid.csv")] == ["2", "4", "6", "8"]
+    moved = list(open_dataset(native, "valid"))
+    moved[1].positions[9, 3, 0] += 1e-3
+    write_metadata(tmp_path / "moved", metadata_dict(sequence_length=26))
+    write_h5(tmp_path / "moved" / "valid.h5", moved)
+    with pytest.raises(
+        ValueError,
+        match="other trajectories than those now at .*moved .it validated on .*converted",
+    ):
         train(
             tmp_path / "converted",
             tmp_path / "a",
             None,
-            steps=8,
-            resume=True,
-            progress=False,
-            valid_data=tmp_path / "converted",
+            steps=10,
+            **resume,
+            valid_data=tmp_path / "moved",
         )
+    # Nor on other trajectories at the recorded path.
+    changed = list(open_dataset(tmp_path / "converted", "valid"))
+    changed[0].positions[2, 5, 1] += 1e-3
+    write_h5(tmp_path / "converted" / "valid.h5", changed)
+    with pytest.raises(ValueError, match="other trajectories than those now at .*converted;"):
+        train(tmp_path / "converted", tmp_path / "a", None, steps=10, **resume)
+    assert [row["step"] for row in read_csv(tmp_path / "a" / "valid.csv")] == ["2", "4", "6", "8"]
 
 
 def test_validation_data_of_another_kind_is_refused_before_training(tmp_path):

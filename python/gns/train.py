@@ -66,7 +66,12 @@ from gns.normalization import RunningNormalizer
 from gns.simulator import GraphObstacles, LearnedSimulator, Scene
 from gns.threads import thread_tuner
 from gns.train_log import Progress, RunLog, SpikeReport
-from gns.validation import better_validation, validate, validation_trajectories
+from gns.validation import (
+    better_validation,
+    trajectories_digest,
+    validate,
+    validation_trajectories,
+)
 
 __all__ = ["TrainingStep", "batch_tensors", "better_validation", "train", "validate"]
 
@@ -377,8 +382,9 @@ def train(
 
     valid_data: validate on this dataset's valid split instead (e.g. train on `gns generate`
     data, validate on the real data it imitates); its frames may be a whole factor finer than
-    the model's step (every k-th is taken). The checkpoints record it: a resume uses it again
-    and refuses another.
+    the model's step (every k-th is taken). The checkpoints record its path and a digest of
+    its trajectories: a resume uses the path again, takes another path (the run moved
+    machines) only where it holds the same trajectories, and refuses other data.
 
     init_from: fine-tune. Start from a trained model's weights and running statistics (a
     checkpoint, run folder, model folder or shipped model's name, as gns.load_simulator takes)
@@ -420,6 +426,9 @@ def train(
     leader = rank == 0
 
     checkpoint: dict[str, Any] | None = None
+    # What a resumed run validated on, where not at valid_data, and the digest of it.
+    validated_on: str | None = None
+    valid_digest: str | None = None
     found = latest_checkpoint(run_dir)
     if resume:
         found, checkpoint = resume_checkpoint(run_dir, announce=leader)
@@ -440,10 +449,9 @@ def train(
         if valid_data is None:
             valid_data = recorded
         elif recorded is None or Path(valid_data).absolute() != Path(recorded):
-            raise ValueError(
-                f"--resume: the run validated on {recorded or 'its own data'}, not on "
-                f"{valid_data}; resume without --valid-data or start a new run folder"
-            )
+            # Another path (the run moved machines) is checked by content once loaded.
+            validated_on = recorded or "its own data"
+        valid_digest = checkpoint.get("valid_digest")
     elif found is not None:
         raise ValueError(f"{run_dir} already holds checkpoints; pass --resume or another --out")
     initial: dict[str, Any] | None = None
@@ -539,6 +547,22 @@ def train(
                     "uninterrupted run's)\n"
                 )
 
+    valid_trajectories = (
+        validation_trajectories(valid_data or data, tc, simulator, required=bool(valid_data))
+        if leader
+        else []
+    )
+    # A resume validates on the trajectories the run validated on, wherever they lie now
+    # (checkpoints from before the digest was recorded: at the same path).
+    digest = trajectories_digest(valid_trajectories)
+    if leader and (validated_on or valid_digest) and valid_digest != digest:
+        raise ValueError(
+            f"--resume: the run validated on other trajectories than those now at "
+            f"{valid_data or data}"
+            + (f" (it validated on {validated_on})" if validated_on else "")
+            + "; resume on the same validation data or start a new run folder"
+        )
+    valid_digest = digest
     if leader:
         remove_stale_temporaries(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -546,11 +570,6 @@ def train(
         with atomic_file(run_dir / "config.json") as tmp:
             tmp.write_text(json.dumps(to_dict(config), indent=1) + "\n")
     log = RunLog(run_dir, start if checkpoint is not None else None) if leader else None
-    valid_trajectories = (
-        validation_trajectories(valid_data or data, tc, simulator, required=bool(valid_data))
-        if leader
-        else []
-    )
     meter = Progress(tc.steps, start, enabled=progress and leader, time_limit=time_limit)
 
     def out_of_time() -> bool:
@@ -576,6 +595,7 @@ def train(
             "model": simulator.state_dict(),
             "best": best,
             "valid_data": None if valid_data is None else str(Path(valid_data).absolute()),
+            "valid_digest": valid_digest,
             "init_from": None if init_from is None else str(init_from),
         }
 

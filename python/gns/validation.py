@@ -6,6 +6,7 @@ Kept apart from gns.train's loop; gns.train re-exports validate and better_valid
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from collections.abc import Sequence
@@ -119,6 +120,30 @@ def validation_rank(record: dict[str, Any]) -> tuple[bool, float]:
     """The sort key of a validation record ({"value", "in_box"}): lower is better, in the box
     before out of it, then the lower value (better_validation's order)."""
     return (not record.get("in_box", False), record["value"])
+
+
+def trajectories_digest(trajectories: Sequence[Any]) -> str:
+    """SHA-256 of what validation reads (each trajectory's frames, types, features and
+    obstacles), so that a resumed run can tell its validation data at another path (another
+    machine) from other data."""
+    digest = hashlib.sha256()
+    for trajectory in trajectories:
+        arrays = (
+            trajectory.positions,
+            trajectory.particle_type,
+            trajectory.step_context,
+            trajectory.material_property,
+            *(trajectory.obstacles or ()),
+        )
+        for array in arrays:
+            if array is None:
+                digest.update(b"none;")
+                continue
+            array = np.ascontiguousarray(array)
+            digest.update(f"{array.dtype}{array.shape};".encode())
+            digest.update(array.tobytes())
+        digest.update(b"end;")
+    return digest.hexdigest()
 
 
 def validation_trajectories(
