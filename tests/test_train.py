@@ -562,6 +562,14 @@ def test_validation_on_another_dataset_at_finer_frames(tmp_path):
     with pytest.raises(ValueError, match="other trajectories than those now at .*converted;"):
         train(tmp_path / "converted", tmp_path / "a", None, steps=10, **resume)
     assert [row["step"] for row in read_csv(tmp_path / "a" / "valid.csv")] == ["2", "4", "6", "8"]
+    # A checkpoint from before the digest was recorded knows only the path: another is refused
+    # even where it holds the same trajectories.
+    path = latest_checkpoint(tmp_path / "b")
+    state = load_checkpoint(path, resume=True)
+    del state["valid_digest"]
+    save_checkpoint(path, state)
+    with pytest.raises(ValueError, match="validated on its own data, not on .*native;"):
+        train(tmp_path / "converted", tmp_path / "b", None, steps=6, **resume, valid_data=native)
 
 
 def test_validation_data_of_another_kind_is_refused_before_training(tmp_path):

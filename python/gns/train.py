@@ -556,11 +556,15 @@ def train(
     # (checkpoints from before the digest was recorded: at the same path).
     digest = trajectories_digest(valid_trajectories)
     if leader and (validated_on or valid_digest) and valid_digest != digest:
+        here = valid_data or data
+        if valid_digest is None:  # a checkpoint from before the digest: only the path is known
+            problem = f"validated on {validated_on}, not on {here}"
+        else:
+            problem = f"validated on other trajectories than those now at {here}"
+            problem += f" (it validated on {validated_on})" if validated_on else ""
         raise ValueError(
-            f"--resume: the run validated on other trajectories than those now at "
-            f"{valid_data or data}"
-            + (f" (it validated on {validated_on})" if validated_on else "")
-            + "; resume on the same validation data or start a new run folder"
+            f"--resume: the run {problem}; resume on the same validation data or start a new "
+            "run folder"
         )
     valid_digest = digest
     if leader:
