@@ -525,8 +525,7 @@ def test_validation_on_another_dataset_at_finer_frames(tmp_path):
     assert len(ours) == 2 and ours == theirs
     # A resume validates on the recorded data; at another path (the run moved machines) on the
     # same trajectories (here the converted folder's valid split: the same frames); never on
-    # other trajectories (the native data with one particle moved, at the recorded path's
-    # name elsewhere).
+    # other trajectories (the native data with one particle moved, in another folder).
     train(tmp_path / "converted", tmp_path / "a", None, steps=6, resume=True, progress=False)
     assert [row["step"] for row in read_csv(tmp_path / "a" / "valid.csv")] == ["2", "4", "6"]
     resume = dict(resume=True, progress=False)
