@@ -428,7 +428,7 @@ def train(
     checkpoint: dict[str, Any] | None = None
     # What a resumed run validated on, where not at valid_data, and the digest of it.
     validated_on: str | None = None
-    valid_digest: str | None = None
+    recorded_digest: str | None = None
     found = latest_checkpoint(run_dir)
     if resume:
         found, checkpoint = resume_checkpoint(run_dir, announce=leader)
@@ -451,7 +451,7 @@ def train(
         elif recorded is None or Path(valid_data).absolute() != Path(recorded):
             # Another path (the run moved machines) is checked by content once loaded.
             validated_on = recorded or "its own data"
-        valid_digest = checkpoint.get("valid_digest")
+        recorded_digest = checkpoint.get("valid_digest")
     elif found is not None:
         raise ValueError(f"{run_dir} already holds checkpoints; pass --resume or another --out")
     initial: dict[str, Any] | None = None
@@ -554,10 +554,10 @@ def train(
     )
     # A resume validates on the trajectories the run validated on, wherever they lie now
     # (checkpoints from before the digest was recorded: at the same path).
-    digest = trajectories_digest(valid_trajectories)
-    if leader and (validated_on or valid_digest) and valid_digest != digest:
+    valid_digest = trajectories_digest(valid_trajectories)
+    if leader and (validated_on or recorded_digest) and recorded_digest != valid_digest:
         here = valid_data or data
-        if valid_digest is None:  # a checkpoint from before the digest: only the path is known
+        if recorded_digest is None:  # a checkpoint from before the digest: only the path is known
             problem = f"validated on {validated_on}, not on {here}"
         else:
             problem = f"validated on other trajectories than those now at {here}"
@@ -566,7 +566,6 @@ def train(
             f"--resume: the run {problem}; resume on the same validation data or start a new "
             "run folder"
         )
-    valid_digest = digest
     if leader:
         remove_stale_temporaries(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
