@@ -37,7 +37,7 @@ from gns.data.dataset import available_splits, open_dataset
 from gns.data.deepmind import write_tfrecord
 from gns.data.errors import DatasetError
 from gns.data.h5 import write_h5
-from gns.data.metadata import Metadata, obstacles_json
+from gns.data.metadata import STATISTICS_KEYS, Metadata, obstacles_json
 from gns.data.npz import write_npz
 from gns.data.stats import StatisticsAccumulator
 from gns.data.stride import at_frame_stride, frames_at_stride
@@ -205,14 +205,7 @@ def _check_same_scene(first: Metadata, other: Metadata) -> None:
 
 
 def _without_statistics(metadata: Metadata) -> Metadata:
-    return metadata.replace(
-        vel_mean=None,
-        vel_std=None,
-        acc_mean=None,
-        acc_std=None,
-        context_mean=None,
-        context_std=None,
-    )
+    return metadata.replace(**dict.fromkeys((*STATISTICS_KEYS, "context_mean", "context_std")))
 
 
 def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
@@ -226,12 +219,7 @@ def _strided_metadata(metadata: Metadata, stride: int) -> Metadata:
         )
     # Per-frame statistics change with the time step: _target_metadata computes them anew.
     return metadata.replace(
-        sequence_length=frames - 1,
-        dt=metadata.dt * stride,
-        vel_mean=None,
-        vel_std=None,
-        acc_mean=None,
-        acc_std=None,
+        sequence_length=frames - 1, dt=metadata.dt * stride, **dict.fromkeys(STATISTICS_KEYS)
     )
 
 
