@@ -1,5 +1,5 @@
-"""What a particle model (2D or 3D) sees and does: reach, floor, landing, rest, spread
-(docs/probes.md).
+"""What a particle model (2D or 3D) sees and does: reach, floor, landing, rest, spread,
+collapse, runout (docs/probes.md).
 
     python scripts/probe.py reach MODEL [MODEL ...] [--untrained] [--variant KEY=VALUE ...]
     python scripts/probe.py floor MODEL [MODEL ...] [--shift 1.0]
@@ -9,6 +9,7 @@
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
         [--near-floor GAP [--start-speed 0.5]]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
+    python scripts/probe.py runout MODEL [MODEL ...] [--angles 20 30 45] [--gap 0.019]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block of reach and
 floor is a square (a cube in 3D) lattice (`--spacing`, `--size` wide; the defaults are
@@ -46,6 +47,12 @@ tan(--friction-angle) as the context where the model takes one.
   box); the launch of `spread` one step at a time from the MPM's frames. A block taller than
   its angle of repose allows collapses, the harder the taller; a model that holds it as a
   settled pile (negative launch) cannot reach the runout of a block that starts at rest.
+- runout: a block (--width x --height) at rest with its lower edge --gap above the floor
+  (default sand2d-taichi's sand_04), run by the reference MPM at each of --angles; each model
+  rolled out from the MPM's first frames with that angle as its context, and its last frame's
+  runout and pile height over the MPM's. The looser the sand the further it spreads (the MPM:
+  0.49 m at 45 degrees, 0.78 m at 20); a model that stops every block alike misses it most
+  where the sand is loosest.
 """
 
 from __future__ import annotations
@@ -299,15 +306,8 @@ def collapse(args) -> None:
     from gns.mpm import Block, MpmScene, Sand, simulate
 
     simulators = [gns.load_simulator(name).eval() for name in args.models]
-    frame_dt = MpmScene.frame_dt  # the sand-taichi preset's frames and box, [0.1, 0.9]^2
-    steps = {round(s.scene.dt / frame_dt, 6) for s in simulators}
-    if len(steps) != 1 or not float(next(iter(steps))).is_integer():
-        raise ValueError(
-            f"the models step {sorted(s.scene.dt for s in simulators)} s; the probe needs one "
-            f"step, a whole number of the MPM's {frame_dt} s frames"
-        )
-    stride = int(next(iter(steps)))
-    dt = stride * frame_dt
+    stride = mpm_stride(simulators)
+    dt = stride * MpmScene.frame_dt
     to_speed = probes.GRAVITY * dt  # g steps -> m/s
     print(
         f"blocks {args.width} wide standing at rest on the floor, friction angle "
@@ -331,6 +331,67 @@ def collapse(args) -> None:
             cells.append(f"{r['launch_one_step'] * to_speed:+.2f}")
         mpm_cell = f"{r['launch_truth'] * to_speed:+.2f} ({r['peak_speed'] / dt:.2f}, {r['peak']})"
         print(f"| {height:g} | {mpm_cell} | " + " | ".join(cells) + " |", flush=True)
+
+
+def mpm_stride(simulators) -> int:
+    """How many of the reference MPM's frames (the sand-taichi preset's, 2.5 ms, box
+    [0.1, 0.9]^2) one step of the models is; they must agree on a whole number."""
+    from gns.mpm import MpmScene
+
+    frame_dt = MpmScene.frame_dt
+    steps = {round(s.scene.dt / frame_dt, 6) for s in simulators}
+    if len(steps) != 1 or not float(next(iter(steps))).is_integer():
+        raise ValueError(
+            f"the models step {sorted(s.scene.dt for s in simulators)} s; the probe needs one "
+            f"step, a whole number of the MPM's {frame_dt} s frames"
+        )
+    return int(next(iter(steps)))
+
+
+def runout(args) -> None:
+    from gns.deposit import pile_height, runout_extent
+    from gns.mpm import Block, MpmScene, Sand, simulate
+
+    simulators = [gns.load_simulator(name).eval() for name in args.models]
+    stride = mpm_stride(simulators)
+    floor = 0.1  # MpmScene's default box, [0.1, 0.9]^2 (the sand-taichi preset's)
+    if not (0 <= args.gap and 0 < args.width <= 0.8 and 0 < args.height <= 0.8 - args.gap):
+        raise ValueError(
+            f"the block ({args.width} x {args.height}, {args.gap} above the floor) must lie "
+            "inside the box [0.1, 0.9]^2: gap >= 0, 0 < width <= 0.8, 0 < height <= 0.8 - gap"
+        )
+    print(
+        f"a block {args.width} x {args.height} at rest, its lower edge {args.gap} above the "
+        f"floor, run by our MPM for {args.frames} frames at each friction angle; the last "
+        "frame's runout and pile height of the MPM (m) and of each model's rollout from the "
+        "MPM's first frames (over the MPM's: runout / height)"
+    )
+    print("| angle | MPM runout | MPM height | " + " | ".join(args.models) + " |")
+    print("|---" * (len(args.models) + 3) + "|")
+    for angle in args.angles:
+        block = Block(
+            Sand(friction_angle_deg=angle),
+            lower=((1.0 - args.width) / 2, floor + args.gap),
+            size=(args.width, args.height),
+        )
+        context = [math.tan(math.radians(angle))]
+        mpm = simulate(MpmScene([block], context=context), args.frames)
+        truth = at_frame_stride(mpm.to_trajectory(), stride)
+        last = truth.positions[-1]
+        extent, height = runout_extent(last), pile_height(last, None, floor)
+        cells = []
+        for simulator in simulators:
+            try:
+                predicted = rollout(simulator, truth).predicted_rollout[-1]
+            except RolloutDiverged:
+                cells.append("diverged")
+                continue
+            cells.append(
+                f"{runout_extent(predicted) / extent:.2f} / "
+                f"{pile_height(predicted, None, floor) / height:.2f}"
+            )
+        row = f"| {angle:g} | {extent:.3f} | {height:.3f} | " + " | ".join(cells) + " |"
+        print(row, flush=True)
 
 
 def front_launch(simulator, trajectory, flowing: float) -> dict:
@@ -404,6 +465,14 @@ def main() -> None:
     p.add_argument("--friction-angle", type=float, default=30.0)
     p.add_argument("--frames", type=int, default=181, help="MPM frames of 2.5 ms (default 181)")
     p.set_defaults(run=collapse)
+    p = probes_.add_parser("runout")
+    p.add_argument("models", nargs="+")
+    p.add_argument("--angles", type=float, nargs="+", default=[20.0, 30.0, 45.0])
+    p.add_argument("--gap", type=float, default=0.019, help="default 0.019, sand_04's")
+    p.add_argument("--width", type=float, default=0.2)
+    p.add_argument("--height", type=float, default=0.2)
+    p.add_argument("--frames", type=int, default=350, help="MPM frames of 2.5 ms (default 350)")
+    p.set_defaults(run=runout)
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:

@@ -389,3 +389,18 @@ def test_the_collapse_probe_reads_a_taller_block_collapsing_harder_in_the_mpm():
     low, tall = (float(row[1].split()[0]) for row in rows)
     assert 0.0 <= low < 0.1 and tall > 0.3, lines
     assert all(np.isfinite(float(row[2])) for row in rows), lines
+
+
+def test_the_runout_probe_spreads_loose_sand_further_in_the_mpm():
+    """The physics is the oracle: the same block at rest just above the floor spreads further
+    and ends lower at 20 degrees than at 45 (the looser, the further it runs)."""
+    lines = run_probe("runout", "sand2d-taichi", "--angles", "20", "45", "--frames", "120")
+    assert lines[1] == "| angle | MPM runout | MPM height | sand2d-taichi |", lines
+    rows = [[cell.strip() for cell in line.split("|")[1:-1]] for line in lines[3:]]
+    assert [row[0] for row in rows] == ["20", "45"], lines
+    (loose_runout, loose_height), (firm_runout, firm_height) = (
+        (float(row[1]), float(row[2])) for row in rows
+    )
+    assert loose_runout > 1.3 * firm_runout and loose_height < firm_height, lines
+    ratios = [float(x) for row in rows for x in row[3].split(" / ")]
+    assert len(ratios) == 4 and all(0.0 < r < 10.0 for r in ratios), lines
