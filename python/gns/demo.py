@@ -115,18 +115,25 @@ def demo_config(size: DemoSize, steps: int, rollout_steps: int, n_valid: int) ->
     )
 
 
+# The demo's fine-tuning rate, capped by the shipped model's own last stage (finetune_config).
+FINETUNE_LEARNING_RATE = 5e-5
+
+
 def finetune_config(
     shipped: Any, size: DemoSize, steps: int, rollout_steps: int, n_valid: int
 ) -> Any:
     """The fine-tuning of a shipped model (its gns.config.Config `shipped`): its own model,
     scene and noise, and its last stage's training (models/NAME/finetune.toml for
-    sand2d-taichi: pushforward, mirroring), at a learning rate of 5e-5 decaying tenfold over
-    2000 steps, validated as _validation says."""
+    sand2d-taichi: pushforward, mirroring), at FINETUNE_LEARNING_RATE or its last stage's own
+    rate where that is lower, decaying tenfold over 2000 steps, validated as _validation says.
+    Never faster than the last stage: a higher rate undoes what the model learnt there
+    (docs/sand-ablation.md, session 37)."""
+    rate = min(FINETUNE_LEARNING_RATE, shipped.train.learning_rate)
     train = dataclasses.replace(
         shipped.train,
         steps=steps,
-        learning_rate=5e-5,
-        learning_rate_final=5e-6,
+        learning_rate=rate,
+        learning_rate_final=rate / 10,
         learning_rate_decay_steps=2000,
         **_validation(size, rollout_steps, n_valid),
     )
@@ -362,6 +369,7 @@ def demo(
             init_from=shipped_name,
             device=device,
         )
+        trained["finetune"]["learning_rate"] = config.train.learning_rate
         # Step 0 of the fine-tuning is the shipped model's own validation (gns.train).
         first = _validated(out / "finetune")[0]
         record = {"step": 0, **(better_validation(first, None, shipped_scene["radius"]) or {})}
@@ -428,7 +436,7 @@ def _training_notes(
         t = trained["finetune"]
         notes.append(
             f"Fine-tuning: the shipped {shipped} (`gns train --init-from {shipped}`, its last "
-            f"stage's recipe at learning rate 5e-5) for {t['step']} steps in "
+            f"stage's recipe at learning rate {t['learning_rate']:g}) for {t['step']} steps in "
             f"{t['seconds'] / 60:.1f} min (budget {size.minutes:g} min or {size.steps} steps)"
         )
     t = trained["scratch"]
