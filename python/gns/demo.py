@@ -119,6 +119,12 @@ def demo_config(size: DemoSize, steps: int, rollout_steps: int, n_valid: int) ->
 FINETUNE_LEARNING_RATE = 5e-5
 
 
+def finetune_rate(shipped: Any) -> float:
+    """FINETUNE_LEARNING_RATE, or the shipped model's (gns.config.Config) last-stage rate where
+    that is lower."""
+    return min(FINETUNE_LEARNING_RATE, shipped.train.learning_rate)
+
+
 def finetune_config(
     shipped: Any, size: DemoSize, steps: int, rollout_steps: int, n_valid: int
 ) -> Any:
@@ -128,7 +134,7 @@ def finetune_config(
     rate where that is lower, decaying tenfold over 2000 steps, validated as _validation says.
     Never faster than the last stage: a higher rate undoes what the model learnt there
     (docs/sand-ablation.md, session 37)."""
-    rate = min(FINETUNE_LEARNING_RATE, shipped.train.learning_rate)
+    rate = finetune_rate(shipped)
     train = dataclasses.replace(
         shipped.train,
         steps=steps,
@@ -369,7 +375,6 @@ def demo(
             init_from=shipped_name,
             device=device,
         )
-        trained["finetune"]["learning_rate"] = config.train.learning_rate
         # Step 0 of the fine-tuning is the shipped model's own validation (gns.train).
         first = _validated(out / "finetune")[0]
         record = {"step": 0, **(better_validation(first, None, shipped_scene["radius"]) or {})}
@@ -406,7 +411,13 @@ def demo(
         f"`gns demo` size {size!r}: {n_train} train / {n_valid} valid / {n_test} test "
         f"trajectories of preset {preset!r} (seed {seed}), {n_frames} frames each, dataset "
         + ("reused from an earlier run" if reused else f"generated in {generate_seconds:.0f} s"),
-        *_training_notes(trained, chosen, shipped_name, scratch_minutes),
+        *_training_notes(
+            trained,
+            chosen,
+            shipped_name,
+            None if shipped is None else finetune_rate(shipped),
+            scratch_minutes,
+        ),
         _headline_note(rows, n_valid, rollout_steps, stride),
     ]
     result = report(
@@ -429,14 +440,18 @@ def demo(
 
 
 def _training_notes(
-    trained: dict[str, dict[str, Any]], size: DemoSize, shipped: str | None, scratch_minutes: float
+    trained: dict[str, dict[str, Any]],
+    size: DemoSize,
+    shipped: str | None,
+    rate: float | None,
+    scratch_minutes: float,
 ) -> list[str]:
     notes = []
     if "finetune" in trained:
         t = trained["finetune"]
         notes.append(
             f"Fine-tuning: the shipped {shipped} (`gns train --init-from {shipped}`, its last "
-            f"stage's recipe at learning rate {t['learning_rate']:g}) for {t['step']} steps in "
+            f"stage's recipe at learning rate {rate:g}) for {t['step']} steps in "
             f"{t['seconds'] / 60:.1f} min (budget {size.minutes:g} min or {size.steps} steps)"
         )
     t = trained["scratch"]
