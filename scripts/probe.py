@@ -303,11 +303,12 @@ def near_floor(simulator, trajectory, args) -> bool:
 
 
 def collapse(args) -> None:
-    from gns.mpm import Block, MpmScene, Sand, simulate
+    from gns.mpm import DEFAULT_WALLS, Block, MpmScene, Sand, simulate
 
     simulators = [gns.load_simulator(name).eval() for name in args.models]
     stride = mpm_stride(simulators)
     dt = stride * MpmScene.frame_dt
+    floor, top = DEFAULT_WALLS  # MpmScene's box (the sand-taichi preset's)
     to_speed = probes.GRAVITY * dt  # g steps -> m/s
     print(
         f"blocks {args.width} wide standing at rest on the floor, friction angle "
@@ -319,7 +320,8 @@ def collapse(args) -> None:
     for height in args.heights:
         block = Block(
             Sand(friction_angle_deg=args.friction_angle),
-            lower=((1.0 - args.width) / 2, 0.101),
+            # Centred, a thousandth above the floor: no particle starts on a wall node.
+            lower=((floor + top - args.width) / 2, floor + 0.001),
             size=(args.width, height),
         )
         context = [math.tan(math.radians(args.friction_angle))]
@@ -335,7 +337,7 @@ def collapse(args) -> None:
 
 def mpm_stride(simulators) -> int:
     """How many of the reference MPM's frames (the sand-taichi preset's, 2.5 ms, box
-    [0.1, 0.9]^2) one step of the models is; they must agree on a whole number."""
+    DEFAULT_WALLS) one step of the models is; they must agree on a whole number."""
     from gns.mpm import MpmScene
 
     frame_dt = MpmScene.frame_dt
@@ -350,15 +352,17 @@ def mpm_stride(simulators) -> int:
 
 def runout(args) -> None:
     from gns.deposit import pile_height, runout_extent
-    from gns.mpm import Block, MpmScene, Sand, simulate
+    from gns.mpm import DEFAULT_WALLS, Block, MpmScene, Sand, simulate
 
     simulators = [gns.load_simulator(name).eval() for name in args.models]
     stride = mpm_stride(simulators)
-    floor = 0.1  # MpmScene's default box, [0.1, 0.9]^2 (the sand-taichi preset's)
-    if not (0 <= args.gap and 0 < args.width <= 0.8 and 0 < args.height <= 0.8 - args.gap):
+    floor, top = DEFAULT_WALLS  # MpmScene's box (the sand-taichi preset's)
+    side = top - floor
+    if not (0 <= args.gap and 0 < args.width <= side and 0 < args.height <= side - args.gap):
         raise ValueError(
             f"the block ({args.width} x {args.height}, {args.gap} above the floor) must lie "
-            "inside the box [0.1, 0.9]^2: gap >= 0, 0 < width <= 0.8, 0 < height <= 0.8 - gap"
+            f"inside the box [{floor}, {top}]^2: gap >= 0, 0 < width <= {side:g}, "
+            f"0 < height <= {side:g} - gap"
         )
     print(
         f"a block {args.width} x {args.height} at rest, its lower edge {args.gap} above the "
@@ -371,7 +375,7 @@ def runout(args) -> None:
     for angle in args.angles:
         block = Block(
             Sand(friction_angle_deg=angle),
-            lower=((1.0 - args.width) / 2, floor + args.gap),
+            lower=((floor + top - args.width) / 2, floor + args.gap),
             size=(args.width, args.height),
         )
         context = [math.tan(math.radians(angle))]

@@ -55,6 +55,8 @@ from gns.data.trajectory import Trajectory
 from gns.threads import StepTuner
 
 __all__ = [
+    "DEFAULT_GRAVITY",
+    "DEFAULT_WALLS",
     "Block",
     "Goop",
     "MpmResult",
@@ -66,6 +68,11 @@ __all__ = [
     "Water",
     "simulate",
 ]
+
+# MpmScene's walls on each axis when its bounds are not given (sand2d-taichi's box), and its
+# gravity (m/s^2, down the y axis) when not given.
+DEFAULT_WALLS = (0.1, 0.9)
+DEFAULT_GRAVITY = 9.81
 
 OBSTACLE_TYPE = 3
 # DeepMind's id for rigid solids (0 "Rigid solids" in learning_to_simulate/render_rollout.py of
@@ -231,7 +238,7 @@ class Shake:
 class MpmScene:
     """What to simulate and how finely. The scene is 2D or 3D as its blocks are (2D without
     blocks; obstacles, Segments, are 2D only). bounds: the walls, one (lo, hi) per axis
-    (default (0.1, 0.9) on each); gravity: one value per axis (default -9.81 m/s^2 along y).
+    (default DEFAULT_WALLS on each); gravity: one value per axis (default DEFAULT_GRAVITY down y).
     wall: "coulomb" (friction wall_friction), "slip" or "sticky". jitter: random offset of
     each lattice point, as a fraction of the spacing. context: global features of the whole
     trajectory. shake: the container shaken (Shake), which gives a per-frame context instead."""
@@ -263,9 +270,9 @@ class MpmScene:
                 "cannot have obstacles yet"
             )
         if self.bounds is None:
-            object.__setattr__(self, "bounds", ((0.1, 0.9),) * dim)
+            object.__setattr__(self, "bounds", (DEFAULT_WALLS,) * dim)
         if self.gravity is None:
-            object.__setattr__(self, "gravity", (0.0, -9.81, 0.0)[:dim])
+            object.__setattr__(self, "gravity", (0.0, -DEFAULT_GRAVITY, 0.0)[:dim])
         assert self.bounds is not None and self.gravity is not None
         if len(self.bounds) != dim or any(len(pair) != 2 for pair in self.bounds):
             raise ValueError(
