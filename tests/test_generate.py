@@ -74,8 +74,9 @@ def assert_apart_inside_the_walls(boxes):
 
 # The 3D presets are tested in test_generate_3d.py.
 PRESETS_2D = sorted(p for p in presets.PRESETS if preset_scene_dim(p) == 2)
-# sand-taichi (and -floor) keep sand2d-taichi's own resolution and layout (tests below).
-SHARED_RESOLUTION = sorted(set(PRESETS_2D) - {"sand-taichi", "sand-taichi-floor", "waterdrop-xl"})
+# sand-taichi (and -floor, -throw) keep sand2d-taichi's own resolution and layout (tests below).
+TAICHI = {"sand-taichi", "sand-taichi-floor", "sand-taichi-throw"}
+SHARED_RESOLUTION = sorted(set(PRESETS_2D) - TAICHI - {"waterdrop-xl"})
 
 
 @pytest.mark.parametrize("preset", SHARED_RESOLUTION)
@@ -151,6 +152,27 @@ def test_sand_taichi_floor_draws_the_same_blocks_starting_just_above_the_floor()
     assert 0.105 <= min(heights) and max(heights) <= 0.15
     assert max(heights) - min(heights) > 0.03, "spread over the band, not one height"
     assert 6 <= sum(thrown) <= 18, "about half thrown"
+
+
+def test_sand_taichi_throw_turns_its_block_high_in_the_box_at_the_height_ballistics_gives():
+    """The MPM carries each drawn block up to the apex that u^2 / 2g predicts, 0.25-0.5 above
+    the floor and 0.1 or more below the ceiling, inside the side walls."""
+    g = mpm.DEFAULT_GRAVITY
+    for index in range(3):
+        scene, frames, _ = gen.preset_scene("sand-taichi-throw", 5, "train", index)
+        assert frames == 350 and (scene.grid, scene.spacing) == (64, 1 / 128)
+        (block,) = scene.blocks
+        sideways, up = block.velocity
+        assert 0.5 <= up <= 1.5 and abs(sideways) <= 0.5
+        assert 20 <= block.material.friction_angle_deg <= 45
+        rise = up**2 / (2 * g)
+        # Up to just past the top of the throw (up / g seconds).
+        positions = mpm.simulate(scene, math.ceil(up / g / scene.frame_dt) + 3).positions
+        lowest = positions[:, :, 1].min(axis=1)
+        assert lowest.max() - lowest[0] == pytest.approx(rise, abs=2e-3)
+        top = positions[lowest.argmax()]
+        assert 0.35 <= top[:, 1].min() and top[:, 1].max() <= 0.8 + 1e-3
+        assert 0.1 < top[:, 0].min() and top[:, 0].max() < 0.9
 
 
 @pytest.mark.skipif(not (SAND2D / "manifest.json").is_file(), reason="../shared not present")
@@ -388,11 +410,12 @@ def test_an_existing_dataset_is_never_overwritten(tmp_path):
 
 @pytest.mark.parametrize("preset", PRESETS_2D)
 def test_generated_data_passes_validate_with_particles_at_the_walls(tmp_path, preset):
-    """160 frames (0.4 s) take a thrown block (or a falling drop) into a wall, where the
-    simulator lets particles sink up to a cell past MpmScene.bounds: the metadata's bounds are
-    the walls' innermost grid nodes, which no particle passes by more than half a cell."""
+    """160 frames (0.4 s; 250 for a block thrown up first) take a thrown block (or a falling
+    drop) into a wall, where the simulator lets particles sink up to a cell past
+    MpmScene.bounds: the metadata's bounds are the walls' innermost grid nodes, which no
+    particle passes by more than half a cell."""
     out = tmp_path / preset
-    tiny(out, preset, n=(1, 0, 0), frames=160)
+    tiny(out, preset, n=(1, 0, 0), frames=250 if preset == "sand-taichi-throw" else 160)
     assert [str(problem) for problem in validate_dataset(out)] == []
     (trajectory,) = open_dataset(out, "train")
     scene = gen.preset_scene(preset, 0)[0]

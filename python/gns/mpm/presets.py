@@ -31,6 +31,10 @@ SAND-3D 350, GOOP-3D 300, BOXBATH 150).
   sand-taichi-floor
                  the same with the block's lower edge at most 0.05 above the floor (a short
                  drop, then a collapse): the regime sand-taichi draws in 1 trajectory of 13
+  sand-taichi-throw
+                 the same block thrown up at U(0.5, 1.5) m/s to turn 0.25-0.5 above the floor:
+                 free flight and the top of a throw far from the walls (in 1 window of 300
+                 of sand-taichi's), then a landing from height
 3D (y up, gravity along -y, as in 2D; RESOLUTION_3D):
   water-3d, sand-3d, goop-3d
                  1-3 blocks of side U(0.15, 0.25) thrown as their 2D twins, starting at least
@@ -434,6 +438,33 @@ def sand_taichi_floor(rng: np.random.Generator) -> tuple[MpmScene, int]:
     return _taichi_block(rng, WALLS[1][0] + TAICHI_FLOOR_GAP), TAICHI_FRAMES
 
 
+# sand-taichi-throw: where the block's lower edge turns (0.25-0.5 above the floor, its top at
+# least 0.1 below the ceiling), how fast it is thrown up, and its corner's x range and sideways
+# speed (the block turns inside the side walls, at most 0.08 m from where it started).
+THROW_APEX = (0.35, 0.6)
+THROW_UP = (0.5, 1.5)
+THROW_X = (0.2, 0.6)
+THROW_SIDEWAYS = 0.5
+
+
+def sand_taichi_throw(rng: np.random.Generator) -> tuple[MpmScene, int]:
+    """sand-taichi's block thrown upwards to turn high in the box: free flight and the top of a
+    throw, which the free-fall probe asks of a model (docs/probes.md), then a landing from up
+    to 0.5 m."""
+    angle = float(rng.uniform(20.0, 45.0))
+    up = float(rng.uniform(*THROW_UP))
+    apex = float(rng.uniform(*THROW_APEX))
+    sideways = float(rng.uniform(-THROW_SIDEWAYS, THROW_SIDEWAYS))
+    lower = (float(rng.uniform(*THROW_X)), apex - up**2 / (2 * mpm.DEFAULT_GRAVITY))
+    block = Block(
+        Sand(friction_angle_deg=angle),
+        lower=lower,
+        size=(TAICHI_SIDE, TAICHI_SIDE),
+        velocity=(sideways, up),
+    )
+    return MpmScene([block], context=[math.tan(math.radians(angle))]), TAICHI_FRAMES
+
+
 def _taichi_block(rng: np.random.Generator, top: float) -> MpmScene:
     """The block anywhere in x, its lower edge at most `top` high, at rest or (half the draws)
     thrown at U(-1, 1) m/s per axis."""
@@ -541,6 +572,7 @@ PRESETS: dict[str, Preset] = {
     "continuous": continuous,
     "sand-taichi": sand_taichi,
     "sand-taichi-floor": sand_taichi_floor,
+    "sand-taichi-throw": sand_taichi_throw,
     "water-3d": water_3d,
     "sand-3d": sand_3d,
     "goop-3d": goop_3d,
