@@ -2,6 +2,7 @@
 
     python scripts/free_fall_probe.py MODEL [MODEL ...] [--corner X Y [Z]] [--size 0.2]
         [--spacing 0.0078125] [--friction-angle 30] [--particle-type T] [--speed 0]
+        [--noise STD [--draws 32]]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block (a square, in 3D
 a cube, lattice of `spacing`, `size` wide, its lower corner at `corner`, by default in the
@@ -11,7 +12,10 @@ model's C + 1 input frames of a throw upwards that reaches its top at the last o
 simulator then accelerates it at exactly g; the model's mean vertical acceleration over g is
 printed, with that of the bottom and top rows (a bottom falling faster than the top squeezes
 the block before it lands). A model that has learned gravity prints 1.00. The particles are of
-the scene's one free (not kinematic) type unless --particle-type says which.
+the scene's one free (not kinematic) type unless --particle-type says which. --noise STD: the
+input given the random-walk noise of training at that std, the prediction averaged over
+--draws draws and read against the clean input (the training target's mean is g in every
+row: a model that has learned to undo its noise still prints 1.00).
 """
 
 from __future__ import annotations
@@ -57,7 +61,13 @@ def main() -> None:
         help="m/s downward at the last input frame (default 0: the top of a throw, whose "
         "input velocities look almost at rest)",
     )
+    parser.add_argument(
+        "--noise", type=float, default=0.0, help="random-walk input noise std (default 0: none)"
+    )
+    parser.add_argument("--draws", type=int, default=32, help="noise draws averaged (default 32)")
     args = parser.parse_args()
+    if args.noise < 0 or args.draws < 1:
+        parser.error(f"--noise {args.noise} must be >= 0 and --draws {args.draws} >= 1")
     torch.set_num_threads(1)
     for name in args.models:
         simulator = gns.load_simulator(name).eval()
@@ -67,7 +77,7 @@ def main() -> None:
                 simulator, args.friction_angle, args.particle_type
             )
             mean, bottom, top = probes.fall_in_g(
-                simulator, block, context, particle_type, args.speed
+                simulator, block, context, particle_type, args.speed, args.noise, args.draws
             )
         except ValueError as err:
             raise SystemExit(f"{name}: {err}") from err

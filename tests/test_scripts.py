@@ -15,6 +15,7 @@ import torch
 from gns.checkpoints import load_simulator
 from gns.data import at_frame_stride, open_dataset
 from gns.mpm import lattice
+from gns.probes import block_history
 from gns.rollout import rollout
 
 SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
@@ -135,6 +136,24 @@ def test_free_fall_probe_reads_a_simulators_fall_in_g(fraction):
     np.testing.assert_allclose(
         history[:, -1] - history[:, -2], [[0.0, -1.5 * dt]] * len(block), atol=1e-7
     )
+
+
+def test_free_fall_probe_averages_a_prediction_over_the_training_noise():
+    """A stepper that continues its input at g, given noisy input, is off by the noise in
+    each draw (the training's random walk, its last velocity's std as asked); averaged over
+    the draws and read against the clean input, the fall is g again."""
+    probe = load_script("free_fall_probe.py")
+    dt, std = 0.0075, 2e-4
+    g_step = 9.81 * dt**2
+    stepper = Stepper(dt, -g_step)
+    block = lattice((0.4, 0.45), (0.2, 0.2), 1 / 128)
+    mean, bottom, top = probe.fall_in_g(stepper, block, 0.5, 6, noise=std, draws=200)
+    noise = stepper.given - block_history(block, 6, g_step)  # the last draw's
+    assert np.std(noise[:, -1] - noise[:, -2]) == pytest.approx(std, rel=0.1)
+    # One draw moves a particle's fall by about 3 std (1 g); the mean over a row's 26
+    # particles and 200 draws by 0.02 g, over all 676 by 0.003 g.
+    assert (bottom, top) == pytest.approx((1.0, 1.0), abs=0.1)
+    assert mean == pytest.approx(1.0, abs=0.02)
 
 
 def test_free_fall_probe_runs_on_a_trained_model(strided):

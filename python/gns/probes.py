@@ -38,6 +38,7 @@ from torch import Tensor
 
 import gns.ops as ops
 from gns.mpm import lattice
+from gns.noise import random_walk
 from gns.simulator import LearnedSimulator
 
 GRAVITY = 9.81  # m/s^2, along -y
@@ -121,17 +122,34 @@ def g_step(simulator: Any) -> float:
 
 
 def _accelerations(
-    simulator: Any, history: np.ndarray, particle_type: int, context: Tensor | None
+    simulator: Any,
+    history: np.ndarray,
+    particle_type: int,
+    context: Tensor | None,
+    noise: float = 0.0,
+    draws: int = 1,
 ) -> np.ndarray:
     """(N, D) predicted accelerations, float64, of one step from `history` (N, C + 1, D): the
-    prediction's second difference with the history as the model sees it (float32)."""
+    prediction's second difference with the history as the model sees it (float32). noise >
+    0: the model is given the history with random-walk noise of that std, as training gives
+    it (gns.noise.random_walk), and its prediction, averaged over `draws` seeded draws, is
+    differenced with the clean history."""
     given = torch.tensor(history, dtype=torch.float32)
+    inputs = [given]
+    if noise > 0:
+        generator = torch.Generator().manual_seed(0)
+        inputs = [given + random_walk(given, noise, generator=generator) for _ in range(draws)]
+    types = torch.full((len(history),), particle_type)
     with torch.no_grad():
-        following = simulator.predict_positions(
-            given, torch.full((len(history),), particle_type), context=context
+        following = np.mean(
+            [
+                simulator.predict_positions(x, types, context=context).double().numpy()
+                for x in inputs
+            ],
+            axis=0,
         )
     seen = given.double().numpy()
-    return following.double().numpy() - 2 * seen[:, -1] + seen[:, -2]
+    return following - 2 * seen[:, -1] + seen[:, -2]
 
 
 def fall_in_g(
@@ -140,15 +158,21 @@ def fall_in_g(
     context: Tensor | None,
     particle_type: int,
     speed: float = 0.0,
+    noise: float = 0.0,
+    draws: int = 32,
 ):
     """The block's vertical acceleration in one predicted step of free fall (throughout the
     input frames), over g: (mean, bottom row, top row); positive is downward. speed: how fast
     (m/s) the block falls at the last input frame; 0, the top of a throw, is the hardest case,
-    where every input velocity is within a few g dt of rest."""
+    where every input velocity is within a few g dt of rest. noise: the std of random-walk
+    input noise as training adds it (gns.noise.random_walk); the acceleration is then taken
+    against the clean history and averaged over `draws` draws (seeded): the mean of the
+    training target is g in every row, so a model that has learned to undo its noise reads 1."""
     g = g_step(simulator)
     frames = simulator.config.model.velocity_history + 1
     history = block_history(block, frames, g, -speed * simulator.scene.dt)
-    fall = -_accelerations(simulator, history, particle_type, context)[:, 1] / g
+    acceleration = _accelerations(simulator, history, particle_type, context, noise, draws)
+    fall = -acceleration[:, 1] / g
     y = block[:, 1]
     return fall.mean(), fall[y == y.min()].mean(), fall[y == y.max()].mean()
 
