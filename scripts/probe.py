@@ -303,12 +303,11 @@ def near_floor(simulator, trajectory, args) -> bool:
 
 
 def collapse(args) -> None:
-    from gns.mpm import DEFAULT_WALLS, Block, MpmScene, Sand, simulate
+    from gns.mpm import MpmScene
 
     simulators = [gns.load_simulator(name).eval() for name in args.models]
     stride = mpm_stride(simulators)
     dt = stride * MpmScene.frame_dt
-    floor, top = DEFAULT_WALLS  # MpmScene's box (the sand-taichi preset's)
     to_speed = probes.GRAVITY * dt  # g steps -> m/s
     print(
         f"blocks {args.width} wide standing at rest on the floor, friction angle "
@@ -318,15 +317,10 @@ def collapse(args) -> None:
     print("| height | MPM (peak speed m/s, step) | " + " | ".join(args.models) + " |")
     print("|---" * (len(args.models) + 2) + "|")
     for height in args.heights:
-        block = Block(
-            Sand(friction_angle_deg=args.friction_angle),
-            # Centred, a thousandth above the floor: no particle starts on a wall node.
-            lower=((floor + top - args.width) / 2, floor + 0.001),
-            size=(args.width, height),
+        # A thousandth above the floor: no particle starts on a wall node.
+        trajectory = block_on_floor(
+            args.friction_angle, args.width, height, 0.001, args.frames, stride
         )
-        context = [math.tan(math.radians(args.friction_angle))]
-        mpm = simulate(MpmScene([block], context=context), args.frames)
-        trajectory = at_frame_stride(mpm.to_trajectory(), stride)
         cells = []
         for simulator in simulators:
             r = front_launch(simulator, trajectory, 0.0)
@@ -350,9 +344,25 @@ def mpm_stride(simulators) -> int:
     return int(next(iter(steps)))
 
 
+def block_on_floor(angle: float, width: float, height: float, gap: float, frames: int, stride):
+    """Our MPM's run (every `stride`-th of `frames` frames) of a sand block `width` x `height`
+    at rest, centred in MpmScene's box with its lower edge `gap` above the floor, friction
+    `angle` degrees (tan(angle) its context)."""
+    from gns.mpm import DEFAULT_WALLS, Block, MpmScene, Sand, simulate
+
+    floor, top = DEFAULT_WALLS
+    block = Block(
+        Sand(friction_angle_deg=angle),
+        lower=((floor + top - width) / 2, floor + gap),
+        size=(width, height),
+    )
+    mpm = simulate(MpmScene([block], context=[math.tan(math.radians(angle))]), frames)
+    return at_frame_stride(mpm.to_trajectory(), stride)
+
+
 def runout(args) -> None:
     from gns.deposit import pile_height, runout_extent
-    from gns.mpm import DEFAULT_WALLS, Block, MpmScene, Sand, simulate
+    from gns.mpm import DEFAULT_WALLS
 
     simulators = [gns.load_simulator(name).eval() for name in args.models]
     stride = mpm_stride(simulators)
@@ -373,14 +383,7 @@ def runout(args) -> None:
     print("| angle | MPM runout | MPM height | " + " | ".join(args.models) + " |")
     print("|---" * (len(args.models) + 3) + "|")
     for angle in args.angles:
-        block = Block(
-            Sand(friction_angle_deg=angle),
-            lower=((floor + top - args.width) / 2, floor + args.gap),
-            size=(args.width, args.height),
-        )
-        context = [math.tan(math.radians(angle))]
-        mpm = simulate(MpmScene([block], context=context), args.frames)
-        truth = at_frame_stride(mpm.to_trajectory(), stride)
+        truth = block_on_floor(angle, args.width, args.height, args.gap, args.frames, stride)
         last = truth.positions[-1]
         extent, height = runout_extent(last), pile_height(last, None, floor)
         cells = []

@@ -37,11 +37,11 @@ import torch
 from torch import Tensor
 
 import gns.ops as ops
-from gns.mpm import lattice
+from gns.mpm import DEFAULT_GRAVITY, lattice
 from gns.noise import random_walk
 from gns.simulator import LearnedSimulator
 
-GRAVITY = 9.81  # m/s^2, along -y
+GRAVITY = DEFAULT_GRAVITY  # m/s^2, along -y: the reference MPM's
 
 __all__ = [
     "GRAVITY",
