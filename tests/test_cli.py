@@ -379,6 +379,39 @@ def test_rollouts_record_absolute_paths_and_eval_reads_them_anywhere(
     capsys.readouterr()
 
 
+def test_precision_fixes_what_the_network_runs_in(trained, tmp_path, capsys, monkeypatch):
+    """--precision overrides the model's "auto" (which picks bf16 where it is native and timed
+    faster, so figures differ between machines): rollouts record it, eval's one-step errors
+    run in it, and bf16 with --float64 is refused."""
+    import gns.rollout
+
+    run, data = trained
+    # A machine where "auto" would keep bf16: native, and any speed-up enough.
+    monkeypatch.setattr(gns.rollout, "native_bf16", lambda device: True)
+    monkeypatch.setattr(gns.rollout, "BF16_SPEEDUP", 0.0)
+    argv = ["rollout", "--run", str(run), "--data", str(data), "--trajectories", "0"]
+    argv += ["--steps", "4"]
+    ran = {}
+    for precision in (None, "fp32", "bf16"):
+        out = tmp_path / str(precision)
+        flag = [] if precision is None else ["--precision", precision]
+        assert main([*argv, "--out", str(out), *flag]) == 0
+        ran[precision] = load_rollout(out / "rollout_test_0.npz")
+    assert ran[None].metadata["precision"] == "bf16"
+    assert ran["fp32"].metadata["precision"] == "fp32"
+    assert ran["bf16"].metadata["precision"] == "bf16"
+    fp32, bf16 = ran["fp32"].predicted_rollout, ran["bf16"].predicted_rollout
+    assert torch.isfinite(torch.from_numpy(bf16)).all() and (fp32 != bf16).any()
+    one_step = {}
+    for precision in ("fp32", "bf16"):
+        ev = ["eval", "--run", str(run), "--data", str(data), "--rollouts", str(tmp_path / "fp32")]
+        assert main([*ev, "--one-step-windows", "8", "--precision", precision]) == 0
+        written = json.loads((run / "eval_test.json").read_text())
+        one_step[precision] = written["mean"]["model"]["one_step_mse"]
+    assert one_step["fp32"] != one_step["bf16"]
+    refused(capsys, [*argv, "--float64", "--precision", "bf16"], "--precision: expected auto or")
+
+
 def test_eval_refuses_rollouts_of_another_model_than_run_names(trained, tmp_path, capsys):
     """--run names the model whose one-step errors and rest test eval gives: rollouts made
     by another one (here the run, while --run names a model exported from it) are refused."""

@@ -152,6 +152,17 @@ def add_runtime_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_precision_option(parser: argparse.ArgumentParser) -> None:
+    """--precision, for the commands whose figures a user compares across machines."""
+    parser.add_argument(
+        "--precision",
+        choices=("auto", "fp32", "bf16"),
+        help="what the network runs in: fp32, bf16 (autocast), or auto (bf16 only where it "
+        "is native and timed faster, so figures can differ between machines and loads); "
+        "default: the model's own (model.precision, usually auto)",
+    )
+
+
 def set_threads(threads: int | None) -> None:
     if threads is not None:
         from gns.threads import fix_threads

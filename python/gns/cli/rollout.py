@@ -12,6 +12,7 @@ from gns.cli.options import (
     RUN_HELP,
     ArgumentProblem,
     add_checkpoint_option,
+    add_precision_option,
     add_runtime_options,
     existing_dir,
     existing_path,
@@ -67,6 +68,7 @@ def add_rollout(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     )
     add_checkpoint_option(roll)
     add_runtime_options(roll)
+    add_precision_option(roll)
     roll.set_defaults(handler=run_rollout)
 
 
@@ -112,6 +114,7 @@ def add_eval(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     )
     add_checkpoint_option(ev)
     add_runtime_options(ev)
+    add_precision_option(ev)
     ev.set_defaults(handler=run_eval)
 
 
@@ -140,11 +143,15 @@ def run_rollout(args: argparse.Namespace) -> int:
     out = args.out or run_folder(args.run) / "rollouts" / args.split
     if out.exists() and not out.is_dir():
         raise ArgumentProblem("--out", f"{out} exists and is not a folder")
+    if args.float64 and args.precision == "bf16":
+        raise ArgumentProblem("--precision", "expected auto or fp32 with --float64, got bf16")
     set_threads(args.threads)
     device = resolve_device(args.device)
     checkpoint = choose_checkpoint(args.run, args.checkpoint)
     print(f"checkpoint {checkpoint}")
     simulator = load_simulator(checkpoint, device)
+    if args.precision:
+        simulator.model.precision = args.precision
     # Refused here, before the first rollout and its folder, if the data's spacing does not
     # divide the model's step.
     stride = simulator.frame_stride_for(dataset.metadata)
@@ -251,6 +258,8 @@ def run_eval(args: argparse.Namespace) -> int:
         else:
             checkpoint = choose_checkpoint(args.run, args.checkpoint)
         simulator = load_simulator(checkpoint, device)
+        if args.precision:
+            simulator.model.precision = args.precision
         # One-step errors and the rest test on the frames the model steps between, as its
         # rollouts were made (gns rollout): every stride-th frame of the data.
         stride = simulator.frame_stride_for(dataset.metadata)
