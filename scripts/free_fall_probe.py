@@ -2,7 +2,7 @@
 
     python scripts/free_fall_probe.py MODEL [MODEL ...] [--corner X Y [Z]] [--size 0.2]
         [--spacing 0.0078125] [--friction-angle 30] [--particle-type T] [--speed 0]
-        [--noise STD [--draws 32]]
+        [--noise STD [--draws 32]] [--kick D]
 
 MODEL: a model name, folder or checkpoint (as `gns rollout --run`). The block (a square, in 3D
 a cube, lattice of `spacing`, `size` wide, its lower corner at `corner`, by default in the
@@ -15,7 +15,10 @@ the block before it lands). A model that has learned gravity prints 1.00. The pa
 the scene's one free (not kinematic) type unless --particle-type says which. --noise STD: the
 input given the random-walk noise of training at that std, the prediction averaged over
 --draws draws and read against the clean input (the training target's mean is g in every
-row: a model that has learned to undo its noise still prints 1.00).
+row: a model that has learned to undo its noise still prints 1.00). --kick D: also how much of
+a kick of D (m per step) to the last input velocity of one particle in the middle of the
+bottom, middle and top rows, out of the block and into it, the model undoes in one step (1:
+all, as training's target asks of noise; 0: none, taken for motion).
 """
 
 from __future__ import annotations
@@ -65,6 +68,9 @@ def main() -> None:
         "--noise", type=float, default=0.0, help="random-walk input noise std (default 0: none)"
     )
     parser.add_argument("--draws", type=int, default=32, help="noise draws averaged (default 32)")
+    parser.add_argument(
+        "--kick", type=float, help="also the share of a kick of this size the model undoes"
+    )
     args = parser.parse_args()
     if args.noise < 0 or args.draws < 1:
         parser.error(f"--noise {args.noise} must be >= 0 and --draws {args.draws} >= 1")
@@ -79,9 +85,17 @@ def main() -> None:
             mean, bottom, top = probes.fall_in_g(
                 simulator, block, context, particle_type, args.speed, args.noise, args.draws
             )
+            removed = None
+            if args.kick is not None:
+                removed = probes.kick_removed(
+                    simulator, block, context, particle_type, args.kick, args.speed
+                )
         except ValueError as err:
             raise SystemExit(f"{name}: {err}") from err
         print(f"{name}: falls at {mean:.2f} g (bottom row {bottom:.2f} g, top row {top:.2f} g)")
+        if removed is not None:
+            rows = ", ".join(f"{row} {o:.2f} / {i:.2f}" for row, (o, i) in removed.items())
+            print(f"{name}: undoes of a kick of {args.kick:g} (out / in): {rows}")
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import torch
 from gns.checkpoints import load_simulator
 from gns.data import at_frame_stride, open_dataset
 from gns.mpm import lattice
-from gns.probes import block_history
+from gns.probes import block_history, kick_removed
 from gns.rollout import rollout
 
 SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
@@ -156,6 +156,38 @@ def test_free_fall_probe_averages_a_prediction_over_the_training_noise():
     assert mean == pytest.approx(1.0, abs=0.02)
 
 
+class Smoother(Stepper):
+    """A stand-in that falls at g and removes the share `up` of each particle's last velocity
+    deviation from the block's median velocity where it points up, `down` where it points down."""
+
+    def __init__(self, dt: float, up: float, down: float):
+        super().__init__(dt, -9.81 * dt**2)
+        self.up, self.down = up, down
+
+    def predict_positions(self, positions, particle_type, context=None):
+        following = super().predict_positions(positions, particle_type, context)
+        velocity = (positions[:, -1] - positions[:, -2]).double()
+        deviation = velocity - velocity.median(dim=0).values
+        share = torch.where(deviation > 0, self.up, self.down)
+        return following - share * deviation
+
+
+@pytest.mark.parametrize("up, down", [(1.0, 1.0), (0.0, 0.0), (0.8, 0.3)])
+def test_the_kick_probe_reads_the_share_of_a_kick_a_simulator_undoes(up, down):
+    """The top row's kick out of the block is up, the bottom row's down, the middle row's
+    (out, in) is (down, up): each reads the stand-in's share for that direction."""
+    dt = 0.0075
+    block = lattice((0.4, 0.45), (0.2, 0.2), 1 / 128)
+    removed = kick_removed(Smoother(dt, up, down), block, None, 0, 1e-3)
+    assert list(removed) == ["bottom", "middle", "top"]
+    expected = {"bottom": (down, up), "middle": (down, up), "top": (up, down)}
+    for row, pair in expected.items():
+        # float32 positions near 0.5 against a kick of 1e-3: round-off below 1e-4 of it
+        assert removed[row] == pytest.approx(pair, abs=1e-3), row
+    with pytest.raises(ValueError, match="kick must be a finite number > 0, got 0.0"):
+        kick_removed(Smoother(dt, up, down), block, None, 0, 0.0)
+
+
 def test_free_fall_probe_runs_on_a_trained_model(strided):
     run, _, _ = strided
     [line] = run_script("free_fall_probe.py", str(run))
@@ -164,3 +196,10 @@ def test_free_fall_probe_runs_on_a_trained_model(strided):
         r"-?\d+\.\d\d g\)",
         line,
     ), line
+    _, kick = run_script("free_fall_probe.py", str(run), "--kick", "1e-3")
+    share = r"-?\d+\.\d\d / -?\d+\.\d\d"
+    assert re.fullmatch(
+        rf"{re.escape(str(run))}: undoes of a kick of 0.001 \(out / in\): bottom {share}, "
+        rf"middle {share}, top {share}",
+        kick,
+    ), kick

@@ -4,6 +4,9 @@ scripts/probe.py run them):
 
     fall_in_g         a block in free fall far from every wall: its predicted acceleration
                       over g (every real simulator: 1)
+    kick_removed      how much of a kick to one particle's last input velocity in that
+                      block a model undoes in one step: 1 where it takes the kick for
+                      noise (as training's target does), 0 where it takes it for motion
     reach_by_hop      how strongly a particle's prediction depends on the inputs of the
                       particles k graph hops away: how far the network carries information
     floor_shift       how much moving the floor 1 m away changes the predictions, by height
@@ -51,6 +54,7 @@ __all__ = [
     "g_step",
     "height_bands",
     "hop_counts",
+    "kick_removed",
     "landing_frame",
     "landing_timeline",
     "launch_and_braking",
@@ -175,6 +179,44 @@ def fall_in_g(
     fall = -acceleration[:, 1] / g
     y = block[:, 1]
     return fall.mean(), fall[y == y.min()].mean(), fall[y == y.max()].mean()
+
+
+def kick_removed(
+    simulator: Any,
+    block: np.ndarray,
+    context: Tensor | None,
+    particle_type: int,
+    kick: float,
+    speed: float = 0.0,
+) -> dict[str, tuple[float, float]]:
+    """How much of a vertical kick of `kick` (position units per step) to the last input
+    velocity of one particle of a block in free fall (as fall_in_g's) the model undoes in one
+    step: the change of that particle's predicted vertical acceleration, against the fall
+    without the kick, over -kick. One particle in the middle of each of the bottom, middle and
+    top rows; for each, (out, in): kicked out of the block and into it (the middle row's:
+    down, up). 1 undoes the kick, as training's target asks of its input noise; 0 keeps it,
+    as motion."""
+    if not (math.isfinite(kick) and kick > 0):
+        raise ValueError(f"kick must be a finite number > 0, got {kick}")
+    g = g_step(simulator)
+    frames = simulator.config.model.velocity_history + 1
+    history = block_history(block, frames, g, -speed * simulator.scene.dt)
+    clean = _accelerations(simulator, history, particle_type, context)[:, 1]
+    x, y = block[:, 0], block[:, 1]
+    rows = {"bottom": y.min(), "middle": y[np.argmin(abs(y - np.median(y)))], "top": y.max()}
+    removed = {}
+    for name, height in rows.items():
+        row = np.flatnonzero(y == height)
+        i = row[np.argmin(abs(x[row] - np.median(x[row])))]
+        out = 1.0 if name == "top" else -1.0
+        pair = []
+        for sign in (out, -out):
+            kicked = history.copy()
+            kicked[i, -1, 1] += sign * kick
+            change = _accelerations(simulator, kicked, particle_type, context)[i, 1] - clean[i]
+            pair.append(float(-change / (sign * kick)))
+        removed[name] = (pair[0], pair[1])
+    return removed
 
 
 # ---------------------------------------------------------------------------------- reach
