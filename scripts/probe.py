@@ -82,9 +82,7 @@ def reach(args) -> None:
         simulator = gns.load_simulator(name).eval()
         context, kind = probes.probe_inputs(simulator, args.friction_angle)
         block = block_in(simulator, args, "middle")
-        history = probes.block_history(
-            block, simulator.config.model.velocity_history + 1, probes.g_step(simulator)
-        )
+        history = probes.falling_history(simulator, block, 0.0)
         centre = block.mean(axis=0)
         targets = np.argsort(np.linalg.norm(block - centre, axis=1), kind="stable")[:9]
         versions = [("trained", simulator)]

@@ -50,6 +50,7 @@ __all__ = [
     "GRAVITY",
     "block_history",
     "fall_in_g",
+    "falling_history",
     "floor_shift",
     "g_step",
     "height_bands",
@@ -156,6 +157,13 @@ def _accelerations(
     return following - 2 * seen[:, -1] + seen[:, -2]
 
 
+def falling_history(simulator: Any, block: np.ndarray, speed: float) -> np.ndarray:
+    """The model's C + 1 input frames of `block` in free fall, falling at `speed` m/s at the
+    last (block_history at the model's step)."""
+    frames = simulator.config.model.velocity_history + 1
+    return block_history(block, frames, g_step(simulator), -speed * simulator.scene.dt)
+
+
 def fall_in_g(
     simulator: Any,
     block: np.ndarray,
@@ -172,11 +180,9 @@ def fall_in_g(
     input noise as training adds it (gns.noise.random_walk); the acceleration is then taken
     against the clean history and averaged over `draws` draws (seeded): the mean of the
     training target is g in every row, so a model that has learned to undo its noise reads 1."""
-    g = g_step(simulator)
-    frames = simulator.config.model.velocity_history + 1
-    history = block_history(block, frames, g, -speed * simulator.scene.dt)
+    history = falling_history(simulator, block, speed)
     acceleration = _accelerations(simulator, history, particle_type, context, noise, draws)
-    fall = -acceleration[:, 1] / g
+    fall = -acceleration[:, 1] / g_step(simulator)
     y = block[:, 1]
     return fall.mean(), fall[y == y.min()].mean(), fall[y == y.max()].mean()
 
@@ -198,9 +204,7 @@ def kick_removed(
     as motion."""
     if not (math.isfinite(kick) and kick > 0):
         raise ValueError(f"kick must be a finite number > 0, got {kick}")
-    g = g_step(simulator)
-    frames = simulator.config.model.velocity_history + 1
-    history = block_history(block, frames, g, -speed * simulator.scene.dt)
+    history = falling_history(simulator, block, speed)
     clean = _accelerations(simulator, history, particle_type, context)[:, 1]
     x, y = block[:, 0], block[:, 1]
     rows = {"bottom": y.min(), "middle": y[np.argmin(abs(y - np.median(y)))], "top": y.max()}
