@@ -1,4 +1,4 @@
-"""What a particle model (2D or 3D) sees and does: reach, floor, landing, rest, spread,
+"""What a particle model (2D or 3D) sees and does: reach, floor, landing, rest, fall, spread,
 collapse, runout (docs/probes.md).
 
     python scripts/probe.py reach MODEL [MODEL ...] [--untrained] [--variant KEY=VALUE ...]
@@ -6,6 +6,8 @@ collapse, runout (docs/probes.md).
     python scripts/probe.py landing MODEL DATA SPLIT [--trajectories 0 1 ...] [--bands 3]
         [--threshold 3]
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
+    python scripts/probe.py fall MODEL [MODEL ...] --data DATA [--split test] [--tol 0.1]
+        [--speeds 0.25 0.5 1]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
         [--near-floor GAP [--start-speed 0.5]]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
@@ -34,6 +36,12 @@ tan(--friction-angle) as the context where the model takes one.
   vertical acceleration (g, up positive) by height above the floor (below R, 1-3 R, 3-6 R,
   above 6 R): the truth's is about 0, and a model that pushes the pile down by a tenth of g
   sinks it 0.5 m in a second of rollout unless the floor holds it.
+- fall: one step at a time from the truth's frames, the particles that fell within --tol g
+  of g through the model's input frames (the top of a throw, a block dropped): the next
+  acceleration over g of the truth and the model, by whether the model sees a wall (within
+  its wall clip), speed at the last input frame (bins at --speeds m/s) and place in the sand
+  (the bottom, inside or top: no particle in the 45-degree cone below or above within R).
+  The lattice block of free_fall_probe.py asks the same of a block the data may not have.
 - spread: one step at a time from the truth's frames of each trajectory, the outward
   horizontal acceleration of the outer fifth of the particles (farthest in x from the mean),
   the truth's and the model's: summed up to the frame of their peak outward speed (the speed
@@ -240,6 +248,61 @@ def rest(args) -> None:
             for b in range(a.shape[1])
         ]
         print(f"| {name} | " + " | ".join(cells) + f" | {np.nanmax(np.abs(t)):.3f} |")
+
+
+def fall(args) -> None:
+    dataset = gns.data.open_dataset(args.data, args.split)
+    edges = np.asarray(args.speeds, dtype=np.float64)
+    if not (np.all(edges > 0) and np.all(np.diff(edges) > 0)):
+        raise ValueError(f"--speeds must be positive and increasing, got {args.speeds}")
+    speeds = [f"under {edges[0]:g}"]
+    speeds += [f"{a:g}-{b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    speeds += [f"over {edges[-1]:g}"]
+    print(
+        f"one step from the truth's frames of each {args.split} trajectory: the particles that "
+        f"fell within {args.tol} g of g through the model's input frames; their next "
+        "acceleration over g (falling on: 1), the truth / the model (samples), by the walls "
+        "the model sees, speed at the last input frame (m/s, down) and place in the sand"
+    )
+    print("| model | walls | speed | bottom | inside | top |")
+    print("|---|---|---|---|---|---|")
+    for name in args.models:
+        simulator = gns.load_simulator(name).eval()
+        scene = simulator.scene
+        if not scene.walls or scene.bounds is None:
+            raise ValueError(f"{name} has no walls to tell seen from unseen")
+        stride = simulator.frame_stride_for(dataset.metadata)
+        history = simulator.config.model.velocity_history + 1
+        parts = []
+        for trajectory in dataset:
+            trajectory = at_frame_stride(trajectory, stride)
+            free = ~scene.kinematic_mask(trajectory.particle_type)
+            parts.append(
+                probes.falling_in_data(
+                    trajectory.positions[:, free],
+                    one_step_frames(simulator, trajectory)[:, free],
+                    probes.g_step(simulator),
+                    history,
+                    np.asarray(scene.bounds),
+                    scene.radius,
+                    args.tol,
+                )
+            )
+        r = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        seen = r["wall"] < scene.wall_clip * scene.radius
+        speed = np.digitize(r["speed"] / scene.dt, edges)
+        for walls, mask in (("seen", seen), ("none", ~seen)):
+            for b, label in enumerate(speeds):
+                cells = []
+                for place in (-1, 0, 1):
+                    k = mask & (speed == b) & (r["surface"] == place)
+                    n = int(k.sum())
+                    cells.append(
+                        f"{r['truth'][k].mean():.2f} / {r['model'][k].mean():.2f} ({n})"
+                        if n
+                        else "-"
+                    )
+                print(f"| {name} | {walls} | {label} | " + " | ".join(cells) + " |")
 
 
 def spread(args) -> None:
@@ -453,6 +516,13 @@ def main() -> None:
     p.add_argument("--data", required=True)
     p.add_argument("--split", default="valid")
     p.set_defaults(run=rest)
+    p = probes_.add_parser("fall")
+    p.add_argument("models", nargs="+")
+    p.add_argument("--data", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--tol", type=float, default=0.1, help="g; default 0.1")
+    p.add_argument("--speeds", type=float, nargs="+", default=[0.25, 0.5, 1.0], help="m/s")
+    p.set_defaults(run=fall)
     p = probes_.add_parser("spread")
     p.add_argument("models", nargs="+")
     p.add_argument("--data", required=True)

@@ -219,3 +219,46 @@ def test_the_target_of_a_pushed_particle_is_the_true_next_position(monkeypatch):
     TrainingStep(simulator)(seq, truth, zero, torch.tensor([5, 5]), wall_shift=shift)
     clean = truth - 2 * seq[:, -1] + seq[:, -2]
     torch.testing.assert_close(seen["acceleration"], clean - shift)
+
+
+@pytest.mark.parametrize("kind", sorted(NOISE_FUNCTIONS))
+def test_exact_last_position_keeps_the_velocity_noise_and_clears_the_last_position(kind):
+    """The same draw with and without noise.exact_last_position: identical velocity noise,
+    none on the most recent position, none at all on kinematic particles."""
+    kinematic = torch.zeros(2000, dtype=torch.bool)
+    kinematic[::4] = True
+    x = sequence(n=2000, dtype=torch.float64)
+    drawn = {}
+    for exact in (False, True):
+        config = NoiseConfig(type=kind, std=SIGMA, exact_last_position=exact)
+        g = torch.Generator().manual_seed(10)
+        drawn[exact] = sample_noise(config, x, kinematic=kinematic, generator=g)
+    torch.testing.assert_close(
+        velocity_noise(drawn[True]), velocity_noise(drawn[False]), rtol=0, atol=1e-15
+    )
+    assert torch.count_nonzero(drawn[True][:, -1]) == 0
+    assert torch.count_nonzero(drawn[True][kinematic]) == 0
+    assert_std(velocity_noise(drawn[True])[~kinematic][:, -1], SIGMA)
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.1, 1.0])
+def test_with_an_exact_last_position_the_target_is_the_true_next_step(fraction):
+    """The target acceleration, applied to the noisy input by the Euler update, lands on the
+    true next position whatever correct_position_fraction says: all the velocity noise is
+    taken back (checked against the update written out, not the simulator's inverse)."""
+    from gns.config import Config, ModelConfig
+    from gns.simulator import LearnedSimulator, Scene
+
+    scene = Scene(dim=2, radius=0.05, particle_types=(5,), bounds=((0, 1), (0, 1)))
+    model = ModelConfig(latent_size=8, mlp_hidden_size=8, message_passing_steps=1)
+    config = NoiseConfig(std=1e-3, correct_position_fraction=fraction, exact_last_position=True)
+    simulator = LearnedSimulator(scene, Config(model=model, noise=config)).double()
+    seq = sequence(n=50, dtype=torch.float64)
+    truth = seq[:, -1] + (seq[:, -1] - seq[:, -2]) + 1e-4
+    noise = simulator.sample_noise(seq, torch.full((50,), 5), torch.Generator().manual_seed(11))
+    noisy = seq + noise
+    assert torch.count_nonzero(noise[:, -2]) > 0
+    target = simulator.target_normalized_acceleration(truth, noisy, noise)
+    acceleration = simulator.acceleration_normalizer.inverse(target)
+    reached = noisy[:, -1] + (noisy[:, -1] - noisy[:, -2]) + acceleration
+    torch.testing.assert_close(reached, truth, rtol=0, atol=1e-12)

@@ -203,6 +203,48 @@ def test_the_landing_timeline_of_a_block_that_stops_dead():
     np.testing.assert_allclose(r["density_rollout"], r["density_truth"], rtol=1e-12)
 
 
+def test_surface_finds_the_top_and_bottom_rows_of_a_lattice_and_a_lone_particle():
+    block = lattice((0.4, 0.4), (0.05, 0.05), SPACING)  # 7 x 7
+    alone = np.array([[0.7, 0.7]])
+    place = probes.surface(np.concatenate([block, alone]), RADIUS)
+    y = block[:, 1]
+    expected = np.where(y == y.max(), 1, np.where(y == y.min(), -1, 0))
+    np.testing.assert_array_equal(place[:-1], expected)
+    assert place[-1] == 1
+    # A particle right beside another (outside the 45-degree cone) leaves it on top.
+    pair = np.array([[0.5, 0.5], [0.5 + 0.9 * RADIUS, 0.5 + 0.1 * RADIUS]])
+    np.testing.assert_array_equal(probes.surface(pair, RADIUS), [1, 1])
+
+
+def test_falling_in_data_takes_the_frames_that_fall_through_the_input_only():
+    """A block falling at g that stops dead at frame 12; a stand-in model that predicts 0.8 g
+    at every step. With 6 input frames, frames 6-12 follow inputs that all fall: the truth
+    reads 1 until the landing (frame 12: it stops from 11 g a step), the model 0.8."""
+    truth = falling_block(20, landing=12)
+    one_step = np.full_like(truth, np.nan)
+    one_step[6:] = 2 * truth[5:-1] - truth[4:-2]
+    one_step[6:, :, 1] -= 0.8 * G
+    bounds = np.array([[0.1, 0.9], [0.1, 0.9]])
+    r = probes.falling_in_data(truth, one_step, G, 6, bounds, RADIUS)
+    n = truth.shape[1]
+    frames = np.repeat(np.arange(6, 13), n)
+    assert len(r["truth"]) == len(frames)
+    np.testing.assert_allclose(r["truth"], np.where(frames == 12, -11.0, 1.0), atol=1e-6)
+    np.testing.assert_allclose(r["model"], 0.8, atol=1e-6)
+    np.testing.assert_allclose(r["speed"], (frames - 1) * G, rtol=1e-9)
+    last = truth[frames - 1, np.tile(np.arange(n), 7)]
+    wall = np.min(np.concatenate([last - 0.1, 0.9 - last], axis=1), axis=1)
+    np.testing.assert_allclose(r["wall"], wall, atol=1e-12)
+    y = truth[0, :, 1]
+    place = np.where(y == y.max(), 1, np.where(y == y.min(), -1, 0))
+    np.testing.assert_array_equal(r["surface"], np.tile(place, 7))
+    # Sand at rest falls through no input: nothing is taken.
+    rest = probes.falling_in_data(truth[12:], truth[12:], G, 6, bounds, RADIUS)
+    assert all(len(v) == 0 for v in rest.values())
+    with pytest.raises(ValueError, match="must be \\(T, N, D\\) alike"):
+        probes.falling_in_data(truth, one_step[:, :5], G, 6, bounds, RADIUS)
+
+
 def test_the_landing_timeline_tells_a_top_that_falls_through_from_one_that_stops():
     truth = falling_block(20, landing=12)
     rollout = truth.copy()
@@ -360,6 +402,10 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     rest = run_probe("rest", str(run), "--data", str(native), "--split", "test")
     assert rest[2].startswith("| model | below R | 1-3 R | 3-6 R | above 6 R |"), rest
     assert rest[4].startswith(f"| {run} | ") and rest[4].count("|") == 7, rest
+    fall = run_probe("fall", str(run), "--data", str(native), "--speeds", "0.5")
+    assert fall[1].startswith("| model | walls | speed | bottom | inside | top |"), fall
+    rows = [line.split(" | ")[1:3] for line in fall[3:]]
+    assert rows == [[w, s] for w in ("seen", "none") for s in ("under 0.5", "over 0.5")], fall
     spread = run_probe("spread", str(run), "--data", str(native), "--flowing", "0")
     assert spread[1].startswith("| model | trajectory | peak speed (m/s, step) | launch"), spread
     assert spread[-1].startswith(f"| {run} | all (sum; mean) | "), spread

@@ -248,6 +248,11 @@ class NoiseConfig:
     wall_push_through_only: shift only the particles whose shift takes them past the wall;
         the others keep their inputs and targets (otherwise every particle within one radius
         is shifted, and the layer at a wall learns a push the data does not have).
+    exact_last_position: shift the noise of every input position by that of the most recent
+        one, so the velocities carry the configured noise and the most recent position, from
+        which neighbours and walls are read, carries none: the model is taught to take back
+        noise in a particle's velocity without being shown a packing or a surface the data
+        does not have (correct_position_fraction then has nothing to correct).
     """
 
     type: NoiseType = "random_walk"
@@ -255,6 +260,7 @@ class NoiseConfig:
     correct_position_fraction: float = 0.0
     wall_push: float = 0.0
     wall_push_through_only: bool = False
+    exact_last_position: bool = False
 
     def __post_init__(self) -> None:
         if self.type not in NOISE_TYPES:

@@ -131,9 +131,15 @@ def sample_noise(
     kinematic: Tensor | None = None,
     generator: torch.Generator | None = None,
 ) -> Tensor:
-    """Position noise (N, C + 1, D) of the configured type and std."""
+    """Position noise (N, C + 1, D) of the configured type and std; with
+    config.exact_last_position the same velocity noise, shifted so the most recent position
+    has none."""
     function = NOISE_FUNCTIONS[config.type]
-    return function(position_sequence, config.std, kinematic=kinematic, generator=generator)
+    noise = function(position_sequence, config.std, kinematic=kinematic, generator=generator)
+    if config.exact_last_position:
+        # A shift common to all C + 1 positions leaves their differences, the velocities, as drawn.
+        noise = noise - noise[:, -1:]
+    return noise
 
 
 def wall_push(

@@ -4,6 +4,8 @@ scripts/probe.py run them):
 
     fall_in_g         a block in free fall far from every wall: its predicted acceleration
                       over g (every real simulator: 1)
+    falling_in_data   the same asked of the data's own free-falling particles, one step from
+                      the truth's frames: truth and model by surface, speed and wall distance
     kick_removed      how much of a kick to one particle's last input velocity in that
                       block a model undoes in one step: 1 where it takes the kick for
                       noise (as training's target does), 0 where it takes it for motion
@@ -51,6 +53,7 @@ __all__ = [
     "block_history",
     "fall_in_g",
     "falling_history",
+    "falling_in_data",
     "floor_shift",
     "g_step",
     "height_bands",
@@ -66,6 +69,7 @@ __all__ = [
     "rest_by_height",
     "spreading",
     "starts_near_floor",
+    "surface",
     "untrained_copy",
 ]
 
@@ -352,6 +356,74 @@ def neighbour_counts(frame: np.ndarray, radius: float) -> np.ndarray:
     """(N,) how many other particles are within `radius` of each (Rust radius graph)."""
     edges = ops.radius_graph(np.asarray(frame, dtype=np.float64), radius, self_edges=False)
     return np.bincount(edges[1], minlength=len(frame)).astype(np.float64)
+
+
+def surface(frame: np.ndarray, radius: float) -> np.ndarray:
+    """(N,) where each particle of `frame` (N, D; y, axis 1, is up) sits in the sand: 1 on
+    top (no other particle within `radius` in the 45-degree cone above it), -1 at the bottom
+    (none in the cone below, some above), 0 inside. A particle alone is on top."""
+    frame = np.asarray(frame, dtype=np.float64)
+    senders, receivers = ops.radius_graph(frame, radius, self_edges=False)
+    offset = frame[senders] - frame[receivers]
+    up = offset[:, 1]
+    across = np.linalg.norm(np.delete(offset, 1, axis=1), axis=1)
+    above = np.bincount(receivers[(up > 0) & (across <= up)], minlength=len(frame)) > 0
+    below = np.bincount(receivers[(up < 0) & (across <= -up)], minlength=len(frame)) > 0
+    return np.where(~above, 1, np.where(~below, -1, 0))
+
+
+def falling_in_data(
+    truth: np.ndarray,
+    one_step: np.ndarray,
+    g: float,
+    history: int,
+    bounds: np.ndarray,
+    radius: float,
+    tol: float = 0.1,
+) -> dict[str, np.ndarray]:
+    """The data's own free fall, one step: the particles of a trajectory that fall freely
+    through the model's input frames, and the acceleration the truth and the model give them
+    next. The synthetic block of fall_in_g asks the same on a lattice; this asks it where the
+    data has it (the top of a throw, a block dropped, sand leaving a ledge).
+
+    truth: (T, N, D) frames; one_step: (T, N, D) each frame predicted from the `history`
+    frames of the truth before it (NaN before). A sample is a frame t >= history and a
+    particle whose every vertical acceleration within frames t - history ... t - 1 is within
+    `tol` g of free fall. bounds (D, 2): the walls; g: per step^2. Returns, per sample:
+    "truth", "model" (the vertical acceleration of frame t over g, downward positive: free
+    fall reads 1), and of the last input frame "surface" (surface() at `radius`: 1 top, -1
+    bottom, 0 inside), "wall" (the distance to the nearest wall) and "speed" (downward, per
+    step)."""
+    truth = np.asarray(truth, dtype=np.float64)
+    one_step = np.asarray(one_step, dtype=np.float64)
+    if truth.ndim != 3 or one_step.shape != truth.shape:
+        raise ValueError(
+            f"truth and one_step must be (T, N, D) alike, got {truth.shape}, {one_step.shape}"
+        )
+    if history < 3:
+        raise ValueError(f"history must be at least 3 frames (an acceleration), got {history}")
+    bounds = np.asarray(bounds, dtype=np.float64)
+    y = truth[:, :, 1]
+    acceleration = (y[2:] - 2 * y[1:-1] + y[:-2]) / g  # [k]: frame k + 1's, up positive
+    keys = ("truth", "model", "surface", "wall", "speed")
+    samples: dict[str, list[np.ndarray]] = {key: [] for key in keys}
+    for t in range(history, len(truth)):
+        inside = acceleration[t - history : t - 2]  # centred on frames t - h + 1 ... t - 2
+        falling = np.flatnonzero(np.all(np.abs(inside + 1) <= tol, axis=0))
+        if len(falling) == 0:
+            continue
+        last = truth[t - 1]
+        wall = np.minimum(last - bounds[:, 0], bounds[:, 1] - last).min(axis=1)
+        model = (one_step[t, :, 1] - 2 * y[t - 1] + y[t - 2]) / g
+        samples["truth"].append(-acceleration[t - 2, falling])
+        samples["model"].append(-model[falling])
+        samples["surface"].append(surface(last, radius)[falling])
+        samples["wall"].append(wall[falling])
+        samples["speed"].append(y[t - 2, falling] - y[t - 1, falling])
+    return {
+        key: np.concatenate(v) if v else np.zeros(0, dtype=np.int64 if key == "surface" else float)
+        for key, v in samples.items()
+    }
 
 
 def landing_frame(accelerations: np.ndarray, band: np.ndarray, threshold: float) -> int | None:
