@@ -6,8 +6,8 @@ collapse, runout (docs/probes.md).
     python scripts/probe.py landing MODEL DATA SPLIT [--trajectories 0 1 ...] [--bands 3]
         [--threshold 3]
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
-    python scripts/probe.py fall MODEL [MODEL ...] --data DATA [--split test] [--tol 0.1]
-        [--speeds 0.25 0.5 1]
+    python scripts/probe.py fall MODEL [MODEL ...] --data DATA [--split test]
+        [--trajectories 0 1 ...] [--tol 0.1] [--speeds 0.25 0.5 1]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
         [--near-floor GAP [--start-speed 0.5]]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
@@ -274,8 +274,8 @@ def fall(args) -> None:
         stride = simulator.frame_stride_for(dataset.metadata)
         history = simulator.config.model.velocity_history + 1
         parts = []
-        for trajectory in dataset:
-            trajectory = at_frame_stride(trajectory, stride)
+        for index in args.trajectories if args.trajectories else range(len(dataset)):
+            trajectory = at_frame_stride(dataset[index], stride)
             free = ~scene.kinematic_mask(trajectory.particle_type)
             parts.append(
                 probes.falling_in_data(
@@ -520,6 +520,7 @@ def main() -> None:
     p.add_argument("models", nargs="+")
     p.add_argument("--data", required=True)
     p.add_argument("--split", default="test")
+    p.add_argument("--trajectories", type=int, nargs="*", help="indices (default: all)")
     p.add_argument("--tol", type=float, default=0.1, help="g; default 0.1")
     p.add_argument("--speeds", type=float, nargs="+", default=[0.25, 0.5, 1.0], help="m/s")
     p.set_defaults(run=fall)

@@ -402,7 +402,9 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     rest = run_probe("rest", str(run), "--data", str(native), "--split", "test")
     assert rest[2].startswith("| model | below R | 1-3 R | 3-6 R | above 6 R |"), rest
     assert rest[4].startswith(f"| {run} | ") and rest[4].count("|") == 7, rest
-    fall = run_probe("fall", str(run), "--data", str(native), "--speeds", "0.5")
+    fall = run_probe(
+        "fall", str(run), "--data", str(native), "--speeds", "0.5", "--trajectories", "0"
+    )
     assert fall[1].startswith("| model | walls | speed | bottom | inside | top |"), fall
     rows = [line.split(" | ")[1:3] for line in fall[3:]]
     assert rows == [[w, s] for w in ("seen", "none") for s in ("under 0.5", "over 0.5")], fall
