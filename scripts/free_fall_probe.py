@@ -76,8 +76,8 @@ def main() -> None:
         parser.error(f"--noise {args.noise} must be >= 0 and --draws {args.draws} >= 1")
     torch.set_num_threads(1)
     for name in args.models:
-        simulator = gns.load_simulator(name).eval()
         try:
+            simulator = gns.load_simulator(name).eval()
             block = falling_block(simulator.scene, args)
             context, particle_type = probes.probe_inputs(
                 simulator, args.friction_angle, args.particle_type

@@ -203,3 +203,14 @@ def test_free_fall_probe_runs_on_a_trained_model(strided):
         rf"middle {share}, top {share}",
         kick,
     ), kick
+
+
+def test_free_fall_probe_names_a_model_it_cannot_find(tmp_path):
+    missing = tmp_path / "step_000003000.pt"
+    done = subprocess.run(
+        [sys.executable, str(SCRIPTS / "free_fall_probe.py"), str(missing)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.startswith(f"{missing}: no such file or folder"), done.stderr
