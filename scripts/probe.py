@@ -277,10 +277,12 @@ def fall(args) -> None:
         for index in args.trajectories if args.trajectories else range(len(dataset)):
             trajectory = at_frame_stride(dataset[index], stride)
             free = ~scene.kinematic_mask(trajectory.particle_type)
+            truth = trajectory.positions[:, free]
+            frames = probes.falling_frames(truth, probes.g_step(simulator), history, args.tol)
             parts.append(
                 probes.falling_in_data(
-                    trajectory.positions[:, free],
-                    one_step_frames(simulator, trajectory)[:, free],
+                    truth,
+                    one_step_frames(simulator, trajectory, frames)[:, free],
                     probes.g_step(simulator),
                     history,
                     np.asarray(scene.bounds),
@@ -473,17 +475,22 @@ def front_launch(simulator, trajectory, flowing: float) -> dict:
 
 
 @torch.no_grad()
-def one_step_frames(simulator, trajectory) -> np.ndarray:
-    """(T, N, D) float64: each frame t from the model's C + 1 on, predicted from the truth's
-    frames before it; NaN before (no history to predict from)."""
+def one_step_frames(simulator, trajectory, only=None) -> np.ndarray:
+    """(T, N, D) float64: each frame t from the model's C + 1 on (or each t of `only`),
+    predicted from the truth's frames before it; NaN elsewhere (before: no history)."""
     from gns.data.windows import window_keys
     from gns.evaluate import one_step_predictions
 
     history = simulator.config.model.velocity_history + 1
-    pairs = list(window_keys([trajectory], history))
-    predictions = one_step_predictions(simulator, [trajectory], pairs)
+    pairs = list(window_keys([trajectory], history))  # start s predicts frame s + history
+    if only is not None:
+        wanted = set(only)
+        pairs = [(k, start) for k, start in pairs if start + history in wanted]
     frames = np.full(trajectory.positions.shape, np.nan)
-    frames[history:] = np.stack([following.double().numpy() for _, _, following, _ in predictions])
+    for (_, start), (_, _, following, _) in zip(
+        pairs, one_step_predictions(simulator, [trajectory], pairs), strict=True
+    ):
+        frames[start + history] = following.double().numpy()
     return frames
 
 

@@ -227,6 +227,7 @@ def test_falling_in_data_takes_the_frames_that_fall_through_the_input_only():
     bounds = np.array([[0.1, 0.9], [0.1, 0.9]])
     r = probes.falling_in_data(truth, one_step, G, 6, bounds, RADIUS)
     n = truth.shape[1]
+    assert probes.falling_frames(truth, G, 6) == list(range(6, 13))
     frames = np.repeat(np.arange(6, 13), n)
     assert len(r["truth"]) == len(frames)
     np.testing.assert_allclose(r["truth"], np.where(frames == 12, -11.0, 1.0), atol=1e-6)
@@ -241,8 +242,15 @@ def test_falling_in_data_takes_the_frames_that_fall_through_the_input_only():
     # Sand at rest falls through no input: nothing is taken.
     rest = probes.falling_in_data(truth[12:], truth[12:], G, 6, bounds, RADIUS)
     assert all(len(v) == 0 for v in rest.values())
+    # The model's frames are read where a sample is taken only.
+    elsewhere = np.full_like(one_step, np.nan)
+    elsewhere[6:13] = one_step[6:13]
+    again = probes.falling_in_data(truth, elsewhere, G, 6, bounds, RADIUS)
+    np.testing.assert_array_equal(again["model"], r["model"])
     with pytest.raises(ValueError, match="must be \\(T, N, D\\) alike"):
         probes.falling_in_data(truth, one_step[:, :5], G, 6, bounds, RADIUS)
+    with pytest.raises(ValueError, match="history must be at least 3 frames"):
+        probes.falling_frames(truth, G, 2)
 
 
 def test_the_landing_timeline_tells_a_top_that_falls_through_from_one_that_stops():

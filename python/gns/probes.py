@@ -52,6 +52,7 @@ __all__ = [
     "GRAVITY",
     "block_history",
     "fall_in_g",
+    "falling_frames",
     "falling_history",
     "falling_in_data",
     "floor_shift",
@@ -372,6 +373,26 @@ def surface(frame: np.ndarray, radius: float) -> np.ndarray:
     return np.where(~above, 1, np.where(~below, -1, 0))
 
 
+def _falling(y: np.ndarray, g: float, history: int, tol: float) -> list[np.ndarray]:
+    """[t]: the particles whose every vertical acceleration within frames t - history ... t -
+    1 of y (T, N) is within tol g of free fall (empty for t < history)."""
+    if history < 3:
+        raise ValueError(f"history must be at least 3 frames (an acceleration), got {history}")
+    acceleration = (y[2:] - 2 * y[1:-1] + y[:-2]) / g  # [k]: centred on frame k + 1, up positive
+    none = np.zeros(0, dtype=np.int64)
+    return [none] * history + [
+        np.flatnonzero(np.all(np.abs(acceleration[t - history : t - 2] + 1) <= tol, axis=0))
+        for t in range(history, len(y))
+    ]
+
+
+def falling_frames(truth: np.ndarray, g: float, history: int, tol: float = 0.1) -> list[int]:
+    """The frames t of truth (T, N, D) at which falling_in_data takes a sample: those with a
+    particle that fell within tol g of g through the `history` frames before t."""
+    y = np.asarray(truth, dtype=np.float64)[:, :, 1]
+    return [t for t, falling in enumerate(_falling(y, g, history, tol)) if len(falling)]
+
+
 def falling_in_data(
     truth: np.ndarray,
     one_step: np.ndarray,
@@ -387,39 +408,32 @@ def falling_in_data(
     data has it (the top of a throw, a block dropped, sand leaving a ledge).
 
     truth: (T, N, D) frames; one_step: (T, N, D) each frame predicted from the `history`
-    frames of the truth before it (NaN before). A sample is a frame t >= history and a
-    particle whose every vertical acceleration within frames t - history ... t - 1 is within
-    `tol` g of free fall. bounds (D, 2): the walls; g: per step^2. Returns, per sample:
-    "truth", "model" (the vertical acceleration of frame t over g, downward positive: free
-    fall reads 1), and of the last input frame "surface" (surface() at `radius`: 1 top, -1
-    bottom, 0 inside), "wall" (the distance to the nearest wall) and "speed" (downward, per
-    step)."""
+    frames of the truth before it (read only at falling_frames; NaN elsewhere will do). A
+    sample is a frame t >= history and a particle whose every vertical acceleration within
+    frames t - history ... t - 1 is within `tol` g of free fall. bounds (D, 2): the walls; g:
+    per step^2. Returns, per sample: "truth", "model" (the vertical acceleration of frame t
+    over g, downward positive: free fall reads 1), and of the last input frame "surface"
+    (surface() at `radius`: 1 top, -1 bottom, 0 inside), "wall" (the distance to the nearest
+    wall) and "speed" (downward, per step)."""
     truth = np.asarray(truth, dtype=np.float64)
     one_step = np.asarray(one_step, dtype=np.float64)
     if truth.ndim != 3 or one_step.shape != truth.shape:
         raise ValueError(
             f"truth and one_step must be (T, N, D) alike, got {truth.shape}, {one_step.shape}"
         )
-    if history < 3:
-        raise ValueError(f"history must be at least 3 frames (an acceleration), got {history}")
     bounds = np.asarray(bounds, dtype=np.float64)
     y = truth[:, :, 1]
-    acceleration = (y[2:] - 2 * y[1:-1] + y[:-2]) / g  # [k]: frame k + 1's, up positive
     keys = ("truth", "model", "surface", "wall", "speed")
     samples: dict[str, list[np.ndarray]] = {key: [] for key in keys}
-    for t in range(history, len(truth)):
-        inside = acceleration[t - history : t - 2]  # centred on frames t - h + 1 ... t - 2
-        falling = np.flatnonzero(np.all(np.abs(inside + 1) <= tol, axis=0))
+    for t, falling in enumerate(_falling(y, g, history, tol)):
         if len(falling) == 0:
             continue
-        last = truth[t - 1]
-        wall = np.minimum(last - bounds[:, 0], bounds[:, 1] - last).min(axis=1)
-        model = (one_step[t, :, 1] - 2 * y[t - 1] + y[t - 2]) / g
-        samples["truth"].append(-acceleration[t - 2, falling])
-        samples["model"].append(-model[falling])
-        samples["surface"].append(surface(last, radius)[falling])
-        samples["wall"].append(wall[falling])
-        samples["speed"].append(y[t - 2, falling] - y[t - 1, falling])
+        last = truth[t - 1, falling]
+        samples["truth"].append(-(y[t, falling] - 2 * last[:, 1] + y[t - 2, falling]) / g)
+        samples["model"].append(-(one_step[t, falling, 1] - 2 * last[:, 1] + y[t - 2, falling]) / g)
+        samples["surface"].append(surface(truth[t - 1], radius)[falling])
+        samples["wall"].append(np.minimum(last - bounds[:, 0], bounds[:, 1] - last).min(axis=1))
+        samples["speed"].append(y[t - 2, falling] - last[:, 1])
     return {
         key: np.concatenate(v) if v else np.zeros(0, dtype=np.int64 if key == "surface" else float)
         for key, v in samples.items()
