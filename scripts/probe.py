@@ -273,17 +273,18 @@ def fall(args) -> None:
             raise ValueError(f"{name} has no walls to tell seen from unseen")
         stride = simulator.frame_stride_for(dataset.metadata)
         history = simulator.config.model.velocity_history + 1
+        g = probes.g_step(simulator)
         parts = []
         for index in args.trajectories if args.trajectories else range(len(dataset)):
             trajectory = at_frame_stride(dataset[index], stride)
             free = ~scene.kinematic_mask(trajectory.particle_type)
             truth = trajectory.positions[:, free]
-            frames = probes.falling_frames(truth, probes.g_step(simulator), history, args.tol)
+            frames = probes.falling_frames(truth, g, history, args.tol)
             parts.append(
                 probes.falling_in_data(
                     truth,
                     one_step_frames(simulator, trajectory, frames)[:, free],
-                    probes.g_step(simulator),
+                    g,
                     history,
                     np.asarray(scene.bounds),
                     scene.radius,
