@@ -274,6 +274,9 @@ def fall(args) -> None:
         stride = simulator.frame_stride_for(dataset.metadata)
         history = simulator.config.model.velocity_history + 1
         g = probes.g_step(simulator)
+        # A periodic axis has no wall to see: its bounds are not walls.
+        bounds = np.asarray(scene.bounds, dtype=np.float64)
+        bounds[[a for a in range(scene.dim) if a not in scene.wall_axes]] = (-np.inf, np.inf)
         parts = []
         for index in args.trajectories if args.trajectories else range(len(dataset)):
             trajectory = at_frame_stride(dataset[index], stride)
@@ -286,7 +289,7 @@ def fall(args) -> None:
                     one_step_frames(simulator, trajectory, frames)[:, free],
                     g,
                     history,
-                    np.asarray(scene.bounds),
+                    bounds,
                     scene.radius,
                     args.tol,
                 )

@@ -239,6 +239,11 @@ def test_falling_in_data_takes_the_frames_that_fall_through_the_input_only():
     y = truth[0, :, 1]
     place = np.where(y == y.max(), 1, np.where(y == y.min(), -1, 0))
     np.testing.assert_array_equal(r["surface"], np.tile(place, 7))
+    # Without walls along x only the floor and ceiling count.
+    open_x = probes.falling_in_data(truth, one_step, G, 6, [[-np.inf, np.inf], [0.1, 0.9]], RADIUS)
+    np.testing.assert_allclose(
+        open_x["wall"], np.minimum(last[:, 1] - 0.1, 0.9 - last[:, 1]), atol=1e-12
+    )
     # Sand at rest falls through no input: nothing is taken.
     rest = probes.falling_in_data(truth[12:], truth[12:], G, 6, bounds, RADIUS)
     assert all(len(v) == 0 for v in rest.values())

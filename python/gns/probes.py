@@ -410,9 +410,10 @@ def falling_in_data(
     truth: (T, N, D) frames; one_step: (T, N, D) each frame predicted from the `history`
     frames of the truth before it (read only at falling_frames; NaN elsewhere will do). A
     sample is a frame t >= history and a particle whose every vertical acceleration within
-    frames t - history ... t - 1 is within `tol` g of free fall. bounds (D, 2): the walls; g:
-    per step^2. Returns, per sample: "truth", "model" (the vertical acceleration of frame t
-    over g, downward positive: free fall reads 1), and of the last input frame "surface"
+    frames t - history ... t - 1 is within `tol` g of free fall. bounds (D, 2): the walls
+    (-inf, inf on an axis without them); g: per step^2. Returns, per sample: "truth",
+    "model" (the vertical acceleration of frame t over g, downward positive: free fall reads
+    1), and of the last input frame "surface"
     (surface() at `radius`: 1 top, -1 bottom, 0 inside), "wall" (the distance to the nearest
     wall) and "speed" (downward, per step)."""
     truth = np.asarray(truth, dtype=np.float64)
