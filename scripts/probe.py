@@ -7,7 +7,7 @@ collapse, runout (docs/probes.md).
         [--threshold 3]
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
     python scripts/probe.py fall MODEL [MODEL ...] --data DATA [--split test]
-        [--trajectories 0 1 ...] [--tol 0.1] [--speeds 0.25 0.5 1]
+        [--trajectories 0 1 ...] [--tol 0.1] [--speeds 0.25 0.5 1] [--steps 1 2 4 8]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
         [--near-floor GAP [--start-speed 0.5]]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
@@ -41,6 +41,9 @@ tan(--friction-angle) as the context where the model takes one.
   acceleration over g of the truth and the model, by whether the model sees a wall (within
   its wall clip), speed at the last input frame (bins at --speeds m/s) and place in the sand
   (the bottom, inside or top: no particle in the 45-degree cone below or above within R).
+  A second table takes those within the wall clip of the floor, faster than the lowest
+  --speeds, by steps of travel to the floor (bins at --steps): the share the truth keeps
+  falling at g, the model's acceleration there, and both for the rest (the landing).
   The lattice block of free_fall_probe.py asks the same of a block the data may not have.
 - spread: one step at a time from the truth's frames of each trajectory, the outward
   horizontal acceleration of the outer fifth of the particles (farthest in x from the mean),
@@ -250,22 +253,26 @@ def rest(args) -> None:
         print(f"| {name} | " + " | ".join(cells) + f" | {np.nanmax(np.abs(t)):.3f} |")
 
 
+def bin_labels(edges: np.ndarray) -> list[str]:
+    """'under a', 'a-b', ..., 'over z' for increasing bin edges a ... z."""
+    labels = [f"under {edges[0]:g}"]
+    labels += [f"{a:g}-{b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    return labels + [f"over {edges[-1]:g}"]
+
+
+def increasing(values: list[float], option: str) -> np.ndarray:
+    edges = np.asarray(values, dtype=np.float64)
+    if not (np.all(edges > 0) and np.all(np.diff(edges) > 0)):
+        raise ValueError(f"{option} must be positive and increasing, got {values}")
+    return edges
+
+
 def fall(args) -> None:
     dataset = gns.data.open_dataset(args.data, args.split)
-    edges = np.asarray(args.speeds, dtype=np.float64)
-    if not (np.all(edges > 0) and np.all(np.diff(edges) > 0)):
-        raise ValueError(f"--speeds must be positive and increasing, got {args.speeds}")
-    speeds = [f"under {edges[0]:g}"]
-    speeds += [f"{a:g}-{b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
-    speeds += [f"over {edges[-1]:g}"]
-    print(
-        f"one step from the truth's frames of each {args.split} trajectory: the particles that "
-        f"fell within {args.tol} g of g through the model's input frames; their next "
-        "acceleration over g (falling on: 1), the truth / the model (samples), by the walls "
-        "the model sees, speed at the last input frame (m/s, down) and place in the sand"
-    )
-    print("| model | walls | speed | bottom | inside | top |")
-    print("|---|---|---|---|---|---|")
+    edges = increasing(args.speeds, "--speeds")
+    steps_edges = increasing(args.steps, "--steps")
+    places = (("bottom", -1), ("inside", 0), ("top", 1))
+    results = {}
     for name in args.models:
         simulator = gns.load_simulator(name).eval()
         scene = simulator.scene
@@ -295,12 +302,23 @@ def fall(args) -> None:
                 )
             )
         r = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-        seen = r["wall"] < scene.wall_clip * scene.radius
-        speed = np.digitize(r["speed"] / scene.dt, edges)
+        results[name] = (r, scene.wall_clip * scene.radius, scene.dt)
+
+    print(
+        f"one step from the truth's frames of each {args.split} trajectory: the particles that "
+        f"fell within {args.tol} g of g through the model's input frames; their next "
+        "acceleration over g (falling on: 1), the truth / the model (samples), by the walls "
+        "the model sees, speed at the last input frame (m/s, down) and place in the sand"
+    )
+    print("| model | walls | speed | bottom | inside | top |")
+    print("|---|---|---|---|---|---|")
+    for name, (r, clip, dt) in results.items():
+        seen = r["wall"] < clip
+        speed = np.digitize(r["speed"] / dt, edges)
         for walls, mask in (("seen", seen), ("none", ~seen)):
-            for b, label in enumerate(speeds):
+            for b, label in enumerate(bin_labels(edges)):
                 cells = []
-                for place in (-1, 0, 1):
+                for _, place in places:
                     k = mask & (speed == b) & (r["surface"] == place)
                     n = int(k.sum())
                     cells.append(
@@ -309,6 +327,29 @@ def fall(args) -> None:
                         else "-"
                     )
                 print(f"| {name} | {walls} | {label} | " + " | ".join(cells) + " |")
+
+    print()
+    print(
+        "the same particles within the wall clip of the floor and faster than "
+        f"{edges[0]:g} m/s, by steps of travel to the floor at their last input speed "
+        f"(height / speed): the share the truth keeps falling (within {args.tol} g of g), the "
+        "model's acceleration over g there, and the truth's / the model's for the rest"
+    )
+    print("| model | steps to floor | place | samples | truth falls on | model there | the rest |")
+    print("|---|---|---|---|---|---|---|")
+    labels, place_names = bin_labels(steps_edges), {p: n for n, p in places}
+    for name, (r, clip, dt) in results.items():
+        for row in probes.approach_to_floor(r, clip, edges[0] * dt, steps_edges, args.tol):
+            there = "-" if math.isnan(row["model_kept"]) else f"{row['model_kept']:.2f}"
+            rest = (
+                "-"
+                if math.isnan(row["truth_rest"])
+                else f"{row['truth_rest']:.2f} / {row['model_rest']:.2f}"
+            )
+            print(
+                f"| {name} | {labels[row['bin']]} | {place_names[row['place']]} | "
+                f"{row['samples']} | {row['kept']:.2f} | {there} | {rest} |"
+            )
 
 
 def spread(args) -> None:
@@ -534,6 +575,9 @@ def main() -> None:
     p.add_argument("--trajectories", type=int, nargs="*", help="indices (default: all)")
     p.add_argument("--tol", type=float, default=0.1, help="g; default 0.1")
     p.add_argument("--speeds", type=float, nargs="+", default=[0.25, 0.5, 1.0], help="m/s")
+    p.add_argument(
+        "--steps", type=float, nargs="+", default=[1, 2, 4, 8], help="steps of travel to the floor"
+    )
     p.set_defaults(run=fall)
     p = probes_.add_parser("spread")
     p.add_argument("models", nargs="+")

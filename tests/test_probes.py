@@ -236,6 +236,13 @@ def test_falling_in_data_takes_the_frames_that_fall_through_the_input_only():
     last = truth[frames - 1, np.tile(np.arange(n), 7)]
     wall = np.min(np.concatenate([last - 0.1, 0.9 - last], axis=1), axis=1)
     np.testing.assert_allclose(r["wall"], wall, atol=1e-12)
+    np.testing.assert_allclose(r["floor"], last[:, 1] - 0.1, atol=1e-12)
+    # At its last input frame the lowest row has the rest of a fall at g to go before it
+    # stops at frame 11, (11 * 12 - (t - 1) t) / 2 steps of g, above where it stops.
+    bottom = r["surface"] == -1
+    t = frames[bottom]
+    stop = truth[-1, :, 1].min() - 0.1
+    np.testing.assert_allclose(r["floor"][bottom], stop + (132 - (t - 1) * t) * G / 2, atol=1e-12)
     y = truth[0, :, 1]
     place = np.where(y == y.max(), 1, np.where(y == y.min(), -1, 0))
     np.testing.assert_array_equal(r["surface"], np.tile(place, 7))
@@ -256,6 +263,48 @@ def test_falling_in_data_takes_the_frames_that_fall_through_the_input_only():
         probes.falling_in_data(truth, one_step[:, :5], G, 6, bounds, RADIUS)
     with pytest.raises(ValueError, match="history must be at least 3 frames"):
         probes.falling_frames(truth, G, 2)
+
+
+def test_approach_to_floor_bins_the_falling_by_steps_to_the_floor_and_what_follows():
+    """The block that stops dead at frame 12 with the 0.8 g stand-in model: every sample
+    before the landing falls on (the model 0.8 there), the landing's (-11 g) are the rest.
+    Each (bin, place) is checked against a loop over the samples, the floor 0.1 below."""
+    truth = falling_block(20, landing=12)
+    one_step = np.full_like(truth, np.nan)
+    one_step[6:] = 2 * truth[5:-1] - truth[4:-2]
+    one_step[6:, :, 1] -= 0.8 * G
+    r = probes.falling_in_data(truth, one_step, G, 6, [[0.1, 0.9], [0.1, 0.9]], RADIUS)
+    edges = [1, 2, 4, 8]
+    within, min_speed = 0.05, 6.5 * G  # frames 6 (5 g a step) and the top rows miss out
+    rows = probes.approach_to_floor(r, within, min_speed, edges, tol=0.1)
+    n = truth.shape[1]
+    y0 = truth[0, :, 1]
+    place = np.where(y0 == y0.max(), 1, np.where(y0 == y0.min(), -1, 0))
+    expected = {}
+    for t in range(6, 13):
+        for i in range(n):
+            height, speed = truth[t - 1, i, 1] - 0.1, (t - 1) * G
+            if height >= within or speed <= min_speed:
+                continue
+            b = sum(height / speed >= e for e in edges)
+            expected.setdefault((b, place[i]), []).append(t)
+    assert [(row["bin"], row["place"]) for row in rows] == sorted(expected)
+    for row in rows:
+        frames = np.array(expected[row["bin"], row["place"]])
+        assert row["samples"] == len(frames)
+        assert row["kept"] == pytest.approx(np.mean(frames < 12))
+        if np.any(frames < 12):
+            assert row["model_kept"] == pytest.approx(0.8, abs=1e-6)
+        else:
+            assert np.isnan(row["model_kept"])
+        if np.any(frames == 12):  # stops from 11 g a step
+            assert row["truth_rest"] == pytest.approx(-11.0, abs=1e-6)
+            assert row["model_rest"] == pytest.approx(0.8, abs=1e-6)
+        else:
+            assert np.isnan(row["truth_rest"]) and np.isnan(row["model_rest"])
+    # The bottom row stops half a spacing above the floor, coming at 11 g a step: under one
+    # step of travel from it, all of it landing.
+    assert (rows[0]["bin"], rows[0]["place"], rows[0]["kept"]) == (0, -1, 0.0)
 
 
 def test_the_landing_timeline_tells_a_top_that_falls_through_from_one_that_stops():
@@ -420,7 +469,12 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     )
     assert fall[1].startswith("| model | walls | speed | bottom | inside | top |"), fall
     rows = [line.split(" | ")[1:3] for line in fall[3:]]
-    assert rows == [[w, s] for w in ("seen", "none") for s in ("under 0.5", "over 0.5")], fall
+    table = fall.index("") + 1  # the second table, by steps to the floor, after a blank line
+    assert rows[: table - 4] == [
+        [w, s] for w in ("seen", "none") for s in ("under 0.5", "over 0.5")
+    ], fall
+    assert fall[table + 1].startswith("| model | steps to floor | place | samples |"), fall
+    assert all(line.startswith(f"| {run} | ") for line in fall[table + 3 :]), fall
     spread = run_probe("spread", str(run), "--data", str(native), "--flowing", "0")
     assert spread[1].startswith("| model | trajectory | peak speed (m/s, step) | launch"), spread
     assert spread[-1].startswith(f"| {run} | all (sum; mean) | "), spread

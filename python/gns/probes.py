@@ -415,7 +415,8 @@ def falling_in_data(
     "model" (the vertical acceleration of frame t over g, downward positive: free fall reads
     1), and of the last input frame "surface"
     (surface() at `radius`: 1 top, -1 bottom, 0 inside), "wall" (the distance to the nearest
-    wall) and "speed" (downward, per step)."""
+    wall), "floor" (the height above the lower bound of y, the vertical axis) and "speed"
+    (downward, per step)."""
     truth = np.asarray(truth, dtype=np.float64)
     one_step = np.asarray(one_step, dtype=np.float64)
     if truth.ndim != 3 or one_step.shape != truth.shape:
@@ -424,7 +425,7 @@ def falling_in_data(
         )
     bounds = np.asarray(bounds, dtype=np.float64)
     y = truth[:, :, 1]
-    keys = ("truth", "model", "surface", "wall", "speed")
+    keys = ("truth", "model", "surface", "wall", "floor", "speed")
     samples: dict[str, list[np.ndarray]] = {key: [] for key in keys}
     for t, falling in enumerate(_falling(y, g, history, tol)):
         if len(falling) == 0:
@@ -434,11 +435,55 @@ def falling_in_data(
         samples["model"].append(-(one_step[t, falling, 1] - 2 * last[:, 1] + y[t - 2, falling]) / g)
         samples["surface"].append(surface(truth[t - 1], radius)[falling])
         samples["wall"].append(np.minimum(last - bounds[:, 0], bounds[:, 1] - last).min(axis=1))
+        samples["floor"].append(last[:, 1] - bounds[1, 0])
         samples["speed"].append(y[t - 2, falling] - last[:, 1])
     return {
         key: np.concatenate(v) if v else np.zeros(0, dtype=np.int64 if key == "surface" else float)
         for key, v in samples.items()
     }
+
+
+def approach_to_floor(
+    samples: dict[str, np.ndarray],
+    within: float,
+    min_speed: float,
+    edges: Sequence[float],
+    tol: float,
+) -> list[dict[str, Any]]:
+    """The samples of falling_in_data on their way to the floor: within `within` of it and
+    faster than `min_speed` (per step), by steps of travel to it at their last input speed
+    (height / speed; bins at `edges`) and place in the sand. A landing is a step or two of
+    large deceleration; a model that brakes the steps before it, where the truth still falls
+    at g, stops the sand early and packs what falls onto it.
+
+    Returns a row per non-empty (bin, place), in bin then place (bottom, inside, top) order:
+    "bin" (0 below edges[0] ... len(edges) above the last), "place" (-1, 0, 1), "samples",
+    "kept" (the share the truth keeps falling, within tol of g), "model_kept" (the model's
+    acceleration over g there) and "truth_rest" / "model_rest" (both for the others; NaN
+    where none)."""
+    r = samples
+    approach = (r["floor"] < within) & (r["speed"] > min_speed)
+    steps = np.digitize(r["floor"] / np.where(approach, r["speed"], 1.0), np.asarray(edges))
+    kept = np.abs(r["truth"] - 1) <= tol
+    rows = []
+    for b in range(len(edges) + 1):
+        for place in (-1, 0, 1):
+            k = approach & (steps == b) & (r["surface"] == place)
+            if not k.any():
+                continue
+            on, rest = k & kept, k & ~kept
+            rows.append(
+                {
+                    "bin": b,
+                    "place": place,
+                    "samples": int(k.sum()),
+                    "kept": float(on.sum() / k.sum()),
+                    "model_kept": float(r["model"][on].mean()) if on.any() else math.nan,
+                    "truth_rest": float(r["truth"][rest].mean()) if rest.any() else math.nan,
+                    "model_rest": float(r["model"][rest].mean()) if rest.any() else math.nan,
+                }
+            )
+    return rows
 
 
 def landing_frame(accelerations: np.ndarray, band: np.ndarray, threshold: float) -> int | None:
