@@ -241,6 +241,34 @@ def test_exact_last_position_keeps_the_velocity_noise_and_clears_the_last_positi
     assert_std(velocity_noise(drawn[True])[~kinematic][:, -1], SIGMA)
 
 
+def test_std_min_gives_each_window_its_own_std_between_std_min_and_std():
+    """400 windows of 50 particles: each window's noise is the fixed-std draw scaled by one
+    factor, its measured std within [std_min, std] up to sampling error, and the factors
+    spread uniformly over that range (Kolmogorov-Smirnov against scipy's uniform)."""
+    from scipy import stats
+
+    n_node = torch.full((400,), 50)
+    x = sequence(n=20000, dtype=torch.float64)
+    fixed = sample_noise(NoiseConfig(std=1e-3), x, generator=torch.Generator().manual_seed(3))
+    config = NoiseConfig(std=1e-3, std_min=2e-4)
+    mixed = sample_noise(config, x, n_node=n_node, generator=torch.Generator().manual_seed(3))
+    ratio = (mixed[:, 1:] / fixed[:, 1:]).reshape(400, -1)  # the walk starts at 0
+    scale = ratio[:, :1]
+    torch.testing.assert_close(ratio, scale.expand_as(ratio), rtol=1e-12, atol=0)
+    last = velocity_noise(mixed)[:, -1].reshape(400, -1)  # 100 values a window
+    std = last.pow(2).mean(dim=1).sqrt()
+    assert torch.all(std > 2e-4 * 0.7) and torch.all(std < 1e-3 * 1.3), std
+    assert stats.kstest(1e-3 * scale.flatten().numpy(), stats.uniform(2e-4, 8e-4).cdf).pvalue > 1e-3
+    # One window without n_node; n_node that miscounts the particles is refused.
+    one = sample_noise(config, x[:50], generator=torch.Generator().manual_seed(3))
+    alone = sample_noise(NoiseConfig(std=1e-3), x[:50], generator=torch.Generator().manual_seed(3))
+    assert torch.unique((one[:, 1:] / alone[:, 1:]).round(decimals=9)).numel() == 1
+    with pytest.raises(ValueError, match="n_node sums to 500, not the 20000 particles"):
+        sample_noise(config, x, n_node=torch.full((10,), 50))
+    with pytest.raises(ValueError, match="std_min must be in \\[0, std = 0.001\\], got 0.002"):
+        NoiseConfig(std=1e-3, std_min=2e-3)
+
+
 @pytest.mark.parametrize("fraction", [0.0, 0.1, 1.0])
 def test_with_an_exact_last_position_the_target_is_the_true_next_step(fraction):
     """The target acceleration, applied to the noisy input by the Euler update, lands on the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import math
 import os
 import subprocess
@@ -26,6 +27,7 @@ from gns.config import Config, ModelConfig, NoiseConfig, TrainConfig
 from gns.data import Trajectory, open_dataset
 from gns.data.h5 import write_h5
 from gns.data.windows import WindowSampler
+from gns.noise import sample_noise
 from gns.train import TrainingStep, batch_tensors, train
 from gns.validation import better_validation, stays_in_box, validate
 
@@ -97,14 +99,18 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 
 
 @pytest.mark.parametrize(
-    "settings", [{}, {"mirror_axes": (0, 1)}, {"early_steps": 2, "early_repeat": 3}]
+    "settings",
+    [{}, {"mirror_axes": (0, 1)}, {"early_steps": 2, "early_repeat": 3}, {"std_min": 0.0}],
 )
 def test_resume_continues_exactly(tmp_path, settings):
     data = make_dataset(tmp_path / "data")
     # 6 trajectories, 2 in memory, 6 windows each at batch 2: chunks change every 6 steps, and
     # the 21 steps cross epochs, so the sampler, noise stream and optimiser state all matter
-    # (and with mirroring, which windows are mirrored; with early windows, the longer epochs).
-    cfg = lambda steps: config(steps, **settings)  # noqa: E731
+    # (and with mirroring, which windows are mirrored; with early windows, the longer epochs;
+    # with noise.std_min, each window's std).
+    settings = dict(settings)
+    noise = NoiseConfig(std_min=settings.pop("std_min", None))
+    cfg = lambda steps: dataclasses.replace(config(steps, **settings), noise=noise)  # noqa: E731
     straight = train(data, tmp_path / "a", cfg(21), progress=False)
     train(data, tmp_path / "b", cfg(8), progress=False)
     resumed = train(data, tmp_path / "b", cfg(21), resume=True, progress=False)
@@ -119,6 +125,43 @@ def test_resume_continues_exactly(tmp_path, settings):
     # The running statistics came through too (they are part of the model's state).
     count = a["velocity_normalizer.count"]
     assert count > 0
+
+
+def test_training_draws_the_noise_of_each_window_of_a_batch(tmp_path, monkeypatch):
+    """noise.std_min draws a std per window: training passes the windows' sizes along, and
+    the windows of one batch get different stds."""
+    from gns.simulator import LearnedSimulator
+
+    seen = []
+    draw = LearnedSimulator.sample_noise
+
+    def spy(self, sequence, particle_type, generator=None, n_node=None):
+        state = generator.get_state()
+        noise = draw(self, sequence, particle_type, generator, n_node)
+        # The same draw at the fixed std: each window's noise is it scaled by its own factor.
+        fixed = sample_noise(
+            NoiseConfig(std=1e-3), sequence, generator=torch.Generator().set_state(state)
+        )
+        free = ~self.kinematic_mask(particle_type)
+        assert torch.count_nonzero(noise[~free]) == 0
+        seen.append((n_node.tolist(), free, noise[:, 1:] / fixed[:, 1:]))
+        return noise
+
+    monkeypatch.setattr(LearnedSimulator, "sample_noise", spy)
+    data = make_dataset(tmp_path / "data")
+    cfg = dataclasses.replace(config(3), noise=NoiseConfig(std=1e-3, std_min=0.0))
+    train(data, tmp_path / "run", cfg, progress=False)
+    assert len(seen) == 3
+    for n_node, free, ratio in seen:
+        assert len(n_node) == 2 and sum(n_node) == len(ratio)
+        scales = []
+        for window, moving in zip(
+            torch.split(ratio, n_node), torch.split(free, n_node), strict=True
+        ):
+            window = window[moving]
+            torch.testing.assert_close(window, window[:1, :1].expand_as(window))
+            scales.append(float(window[0, 0, 0]))
+        assert 0 <= min(scales) and max(scales) <= 1 and scales[0] != scales[1], scales
 
 
 def test_a_run_trained_on_a_gpu_resumes_on_the_cpu(tmp_path, capsys):

@@ -253,10 +253,15 @@ class NoiseConfig:
         which neighbours and walls are read, carries none: the model is taught to take back
         noise in a particle's velocity without being shown a packing or a surface the data
         does not have (correct_position_fraction then has nothing to correct).
+    std_min: None (every window gets `std`), or the lower end of a std drawn for each training
+        window uniformly from [std_min, std]. A model trained at one std never sees inputs
+        cleaner than that, and it reads a rollout's smooth inputs as noisy ones to take back;
+        with std_min = 0 the clean end is part of training.
     """
 
     type: NoiseType = "random_walk"
     std: float = 3e-4
+    std_min: float | None = None
     correct_position_fraction: float = 0.0
     wall_push: float = 0.0
     wall_push_through_only: bool = False
@@ -267,6 +272,10 @@ class NoiseConfig:
             raise ValueError(f"NoiseConfig.type must be one of {NOISE_TYPES}, got {self.type!r}")
         if not (math.isfinite(self.std) and self.std >= 0):
             raise ValueError(f"NoiseConfig.std must be finite and >= 0, got {self.std}")
+        if self.std_min is not None and not 0 <= self.std_min <= self.std:
+            raise ValueError(
+                f"NoiseConfig.std_min must be in [0, std = {self.std}], got {self.std_min}"
+            )
         if not (math.isfinite(self.wall_push) and self.wall_push >= 0):
             raise ValueError(f"NoiseConfig.wall_push must be finite and >= 0, got {self.wall_push}")
         if not 0.0 <= self.correct_position_fraction <= 1.0:

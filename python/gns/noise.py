@@ -128,17 +128,26 @@ def sample_noise(
     config: NoiseConfig,
     position_sequence: Tensor,
     *,
+    n_node: Tensor | None = None,
     kinematic: Tensor | None = None,
     generator: torch.Generator | None = None,
 ) -> Tensor:
     """Position noise (N, C + 1, D) of the configured type and std; with
     config.exact_last_position the same velocity noise, shifted so the most recent position
-    has none."""
+    has none; with config.std_min, each window's (the n_node (B,) particles of each, in order;
+    None: one window) scaled to a std drawn uniformly from [std_min, std]."""
     function = NOISE_FUNCTIONS[config.type]
     noise = function(position_sequence, config.std, kinematic=kinematic, generator=generator)
     if config.exact_last_position:
         # A shift common to all C + 1 positions leaves their differences, the velocities, as drawn.
         noise = noise - noise[:, -1:]
+    if config.std_min is not None and config.std > 0:
+        counts = torch.as_tensor([len(noise)] if n_node is None else n_node).to(noise.device)
+        if int(counts.sum()) != len(noise):
+            raise ValueError(f"n_node sums to {int(counts.sum())}, not the {len(noise)} particles")
+        u = torch.rand(len(counts), generator=generator, dtype=noise.dtype, device=noise.device)
+        std = config.std_min + (config.std - config.std_min) * u
+        noise = noise * torch.repeat_interleave(std / config.std, counts)[:, None, None]
     return noise
 
 

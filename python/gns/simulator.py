@@ -803,11 +803,14 @@ class LearnedSimulator(nn.Module):
         position_sequence: Tensor,
         particle_type: Tensor,
         generator: torch.Generator | None = None,
+        n_node: Tensor | None = None,
     ) -> Tensor:
-        """Position noise (N, C + 1, D) of the configured type; zero on kinematic particles."""
+        """Position noise (N, C + 1, D) of the configured type; zero on kinematic particles;
+        n_node (B,): the particles of each window, for noise.std_min's std per window."""
         return sample_noise(
             self.config.noise,
             position_sequence,
+            n_node=n_node,
             kinematic=self.kinematic_mask(particle_type),
             generator=generator,
         )

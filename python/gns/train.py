@@ -675,6 +675,7 @@ def train(
                 sequence,
                 t["particle_type"],  # type: ignore[arg-type]
                 generator,
+                t["n_node"],
             )
             shift = simulator.sample_wall_push(sequence, t["particle_type"], generator)  # type: ignore[arg-type]
             unroll = _pushforward_steps(tc, step)
