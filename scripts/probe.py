@@ -8,6 +8,7 @@ collapse, runout (docs/probes.md).
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
     python scripts/probe.py fall MODEL [MODEL ...] --data DATA [--split test]
         [--trajectories 0 1 ...] [--tol 0.1] [--speeds 0.25 0.5 1] [--steps 1 2 4 8]
+        [--noise-draws K]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
         [--near-floor GAP [--start-speed 0.5]]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
@@ -44,6 +45,9 @@ tan(--friction-angle) as the context where the model takes one.
   A second table takes those within the wall clip of the floor, faster than the lowest
   --speeds, by steps of travel to the floor (bins at --steps): the share the truth keeps
   falling at g, the model's acceleration there, and both for the rest (the landing).
+  --noise-draws K adds, after the model's, its mean over K draws of its own training noise on
+  the inputs: a model fitted to what training showed it reads the truth there (with
+  noise.exact_last_position exactly; otherwise the correction fraction moves the target).
   The lattice block of free_fall_probe.py asks the same of a block the data may not have.
 - spread: one step at a time from the truth's frames of each trajectory, the outward
   horizontal acceleration of the outer fifth of the particles (farthest in x from the mean),
@@ -290,25 +294,28 @@ def fall(args) -> None:
             free = ~scene.kinematic_mask(trajectory.particle_type)
             truth = trajectory.positions[:, free]
             frames = probes.falling_frames(truth, g, history, args.tol)
-            parts.append(
-                probes.falling_in_data(
-                    truth,
-                    one_step_frames(simulator, trajectory, frames)[:, free],
-                    g,
-                    history,
-                    bounds,
-                    scene.radius,
-                    args.tol,
-                )
-            )
+            common = (g, history, bounds, scene.radius, args.tol)
+            predicted = one_step_frames(simulator, trajectory, frames)[:, free]
+            part = probes.falling_in_data(truth, predicted, *common)
+            if args.noise_draws:
+                shaken = noisy_one_step_frames(simulator, trajectory, frames, args.noise_draws)
+                part["noisy"] = probes.falling_in_data(truth, shaken[:, free], *common)["model"]
+            parts.append(part)
         r = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
         results[name] = (r, scene.wall_clip * scene.radius, scene.dt)
 
+    noisy = args.noise_draws > 0
+    under_noise = (
+        f"; after the model's, its mean over {args.noise_draws} draws of its training noise"
+        if noisy
+        else ""
+    )
     print(
         f"one step from the truth's frames of each {args.split} trajectory: the particles that "
         f"fell within {args.tol} g of g through the model's input frames; their next "
         "acceleration over g (falling on: 1), the truth / the model (samples), by the walls "
         "the model sees, speed at the last input frame (m/s, down) and place in the sand"
+        + under_noise
     )
     print("| model | walls | speed | bottom | inside | top |")
     print("|---|---|---|---|---|---|")
@@ -320,12 +327,9 @@ def fall(args) -> None:
                 cells = []
                 for _, place in places:
                     k = mask & (speed == b) & (r["surface"] == place)
-                    n = int(k.sum())
-                    cells.append(
-                        f"{r['truth'][k].mean():.2f} / {r['model'][k].mean():.2f} ({n})"
-                        if n
-                        else "-"
-                    )
+                    keys = ("truth", "model", "noisy") if noisy else ("truth", "model")
+                    means = " / ".join(f"{r[key][k].mean():.2f}" for key in keys)
+                    cells.append(f"{means} ({k.sum()})" if k.any() else "-")
                 print(f"| {name} | {walls} | {label} | " + " | ".join(cells) + " |")
 
     print()
@@ -334,21 +338,32 @@ def fall(args) -> None:
         f"{edges[0]:g} m/s, by steps of travel to the floor at their last input speed "
         f"(height / speed): the share the truth keeps falling (within {args.tol} g of g), the "
         "model's acceleration over g there, and the truth's / the model's for the rest"
+        + under_noise
     )
     print("| model | steps to floor | place | samples | truth falls on | model there | the rest |")
     print("|---|---|---|---|---|---|---|")
     labels, place_names = bin_labels(steps_edges), {p: n for n, p in places}
+    number = lambda x: "-" if math.isnan(x) else f"{x:.2f}"  # noqa: E731
     for name, (r, clip, dt) in results.items():
-        for row in probes.approach_to_floor(r, clip, edges[0] * dt, steps_edges, args.tol):
-            there = "-" if math.isnan(row["model_kept"]) else f"{row['model_kept']:.2f}"
+        slowest = edges[0] * dt
+        rows = probes.approach_to_floor(r, clip, slowest, steps_edges, args.tol)
+        under = [None] * len(rows)
+        if noisy:
+            r_noisy = {**r, "model": r["noisy"]}
+            under = probes.approach_to_floor(r_noisy, clip, slowest, steps_edges, args.tol)
+        for row, other in zip(rows, under, strict=True):
+            there, rest = [number(row["model_kept"])], [number(row["model_rest"])]
+            if other is not None:
+                there.append(number(other["model_kept"]))
+                rest.append(number(other["model_rest"]))
             rest = (
                 "-"
                 if math.isnan(row["truth_rest"])
-                else f"{row['truth_rest']:.2f} / {row['model_rest']:.2f}"
+                else " / ".join([number(row["truth_rest"]), *rest])
             )
             print(
                 f"| {name} | {labels[row['bin']]} | {place_names[row['place']]} | "
-                f"{row['samples']} | {row['kept']:.2f} | {there} | {rest} |"
+                f"{row['samples']} | {row['kept']:.2f} | {' / '.join(there)} | {rest} |"
             )
 
 
@@ -539,6 +554,39 @@ def one_step_frames(simulator, trajectory, only=None) -> np.ndarray:
     return frames
 
 
+def noisy_one_step_frames(simulator, trajectory, only, draws: int) -> np.ndarray:
+    """one_step_frames at the frames `only`, each the mean prediction over `draws` draws of
+    the model's own training noise (config.noise) on the truth's input frames (seeded)."""
+    if simulator.scene.obstacles:
+        raise ValueError("--noise-draws takes scenes without obstacles")
+    history = simulator.config.model.velocity_history + 1
+    generator = torch.Generator().manual_seed(0)
+    types = torch.as_tensor(trajectory.particle_type)
+    material = trajectory.material_property
+    material = None if material is None else torch.as_tensor(material)
+    frames = np.full(trajectory.positions.shape, np.nan)
+    for t in only:
+        given = torch.as_tensor(trajectory.positions[t - history : t]).permute(1, 0, 2)
+        context = trajectory.step_context
+        context = None if context is None else torch.as_tensor(context[t - 1 : t])
+        with torch.no_grad():
+            frames[t] = np.mean(
+                [
+                    simulator.predict_positions(
+                        given + simulator.sample_noise(given, types, generator),
+                        types,
+                        context=context,
+                        material_property=material,
+                    )
+                    .double()
+                    .numpy()
+                    for _ in range(draws)
+                ],
+                axis=0,
+            )
+    return frames
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     probes_ = parser.add_subparsers(dest="probe", required=True)
@@ -577,6 +625,12 @@ def main() -> None:
     p.add_argument("--speeds", type=float, nargs="+", default=[0.25, 0.5, 1.0], help="m/s")
     p.add_argument(
         "--steps", type=float, nargs="+", default=[1, 2, 4, 8], help="steps of travel to the floor"
+    )
+    p.add_argument(
+        "--noise-draws",
+        type=int,
+        default=0,
+        help="also the model's mean prediction over this many draws of its training noise",
     )
     p.set_defaults(run=fall)
     p = probes_.add_parser("spread")

@@ -469,6 +469,24 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     )
     assert fall[1].startswith("| model | walls | speed | bottom | inside | top |"), fall
     rows = [line.split(" | ")[1:3] for line in fall[3:]]
+    # Every particle falls within 1000 g of g; the mean under the model's training noise comes
+    # after the model's own figure, the truth's and the model's unchanged.
+    args = ["fall", str(run), "--data", str(native), "--tol", "1000", "--trajectories", "0"]
+    every, shaken = run_probe(*args), run_probe(*args, "--noise-draws", "2")
+
+    def cells(lines: list[str]) -> list[str]:  # the first table's bottom, inside, top
+        return [c.strip(" |") for line in lines[3 : lines.index("")] for c in line.split(" | ")[3:]]
+
+    every, shaken = cells(every), cells(shaken)
+    assert any(cell != "-" for cell in every), every
+    for plain, noisy in zip(every, shaken, strict=True):
+        if plain == "-":
+            assert noisy == "-"
+            continue
+        match = re.fullmatch(r"(\S+) / (\S+) \((\d+)\)", plain)
+        assert match, (plain, every)
+        truth, model, n = match.groups()
+        assert re.fullmatch(rf"{truth} / {model} / -?\d+\.\d\d \({n}\)", noisy), noisy
     table = fall.index("") + 1  # the second table, by steps to the floor, after a blank line
     assert rows[: table - 4] == [
         [w, s] for w in ("seen", "none") for s in ("under 0.5", "over 0.5")
