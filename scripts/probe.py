@@ -327,9 +327,12 @@ def fall(args) -> None:
                 cells = []
                 for _, place in places:
                     k = mask & (speed == b) & (r["surface"] == place)
+                    if not k.any():
+                        cells.append("-")
+                        continue
                     keys = ("truth", "model", "noisy") if noisy else ("truth", "model")
                     means = " / ".join(f"{r[key][k].mean():.2f}" for key in keys)
-                    cells.append(f"{means} ({k.sum()})" if k.any() else "-")
+                    cells.append(f"{means} ({k.sum()})")
                 print(f"| {name} | {walls} | {label} | " + " | ".join(cells) + " |")
 
     print()
