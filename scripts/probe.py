@@ -275,6 +275,8 @@ def fall(args) -> None:
     dataset = gns.data.open_dataset(args.data, args.split)
     edges = increasing(args.speeds, "--speeds")
     steps_edges = increasing(args.steps, "--steps")
+    if args.noise_draws < 0:
+        raise ValueError(f"--noise-draws must be >= 0, got {args.noise_draws}")
     places = (("bottom", -1), ("inside", 0), ("top", 1))
     results = {}
     for name in args.models:

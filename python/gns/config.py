@@ -254,9 +254,9 @@ class NoiseConfig:
         noise in a particle's velocity without being shown a packing or a surface the data
         does not have (correct_position_fraction then has nothing to correct).
     std_min: None (every window gets `std`), or the lower end of a std drawn for each training
-        window uniformly from [std_min, std]. A model trained at one std never sees inputs
-        cleaner than that, and it reads a rollout's smooth inputs as noisy ones to take back;
-        with std_min = 0 the clean end is part of training.
+        window uniformly from [std_min, std]. A model trained at one std is never shown inputs
+        cleaner than that, and a rollout's are (`probe.py fall --noise-draws` reads what that
+        changes); with std_min = 0 the clean end is part of training.
     """
 
     type: NoiseType = "random_walk"
