@@ -256,7 +256,9 @@ class NoiseConfig:
     std_min: None (every window gets `std`), or the lower end of a std drawn for each training
         window uniformly from [std_min, std]. A model trained at one std is never shown inputs
         cleaner than that, and a rollout's are (`probe.py fall --noise-draws` reads what that
-        changes); with std_min = 0 the clean end is part of training.
+        changes); with std_min = 0 the clean end is part of training (on sand2d-taichi that
+        kept the rows of a falling block as uneven and lost the landing: sand-ablation.md,
+        session 43).
     """
 
     type: NoiseType = "random_walk"
