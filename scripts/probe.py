@@ -357,18 +357,16 @@ def fall(args) -> None:
             r_noisy = {**r, "model": r["noisy"]}
             under = probes.approach_to_floor(r_noisy, clip, slowest, steps_edges, args.tol)
         for row, other in zip(rows, under, strict=True):
-            there, rest = [number(row["model_kept"])], [number(row["model_rest"])]
-            if other is not None:
-                there.append(number(other["model_kept"]))
-                rest.append(number(other["model_rest"]))
-            rest = (
-                "-"
-                if math.isnan(row["truth_rest"])
-                else " / ".join([number(row["truth_rest"]), *rest])
+            shown = [row] if other is None else [row, other]
+            there = " / ".join(number(x["model_kept"]) for x in shown)
+            rest = " / ".join(
+                number(x) for x in [row["truth_rest"], *(x["model_rest"] for x in shown)]
             )
+            if math.isnan(row["truth_rest"]):
+                rest = "-"
             print(
                 f"| {name} | {labels[row['bin']]} | {place_names[row['place']]} | "
-                f"{row['samples']} | {row['kept']:.2f} | {' / '.join(there)} | {rest} |"
+                f"{row['samples']} | {row['kept']:.2f} | {there} | {rest} |"
             )
 
 
