@@ -56,7 +56,8 @@ def test_the_stand_in_device_fails_where_cuda_fails(monkeypatch):
 
 def rich_scene_trajectory(periodic: bool, overburden: bool = False) -> tuple[Scene, Trajectory]:
     """Every kind of input: walls (or a periodic axis), two particle types with a kinematic
-    one, a context, a material property; the overburden (with gravity) where asked."""
+    one, a context, a material property; the overburden and the wall basis (with gravity)
+    where asked."""
     rng = np.random.default_rng(3)
     n, frames = 40, 14
     start = rng.uniform(0.2, 0.8, (n, 2))
@@ -76,6 +77,7 @@ def rich_scene_trajectory(periodic: bool, overburden: bool = False) -> tuple[Sce
         material_property_size=1,
         gravity=(0.0, -1e-4) if overburden else None,
         overburden=overburden,
+        wall_basis=3 if overburden else 0,
     )
     trajectory = Trajectory(
         positions.astype(np.float32),

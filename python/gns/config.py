@@ -333,6 +333,12 @@ class SceneConfig:
         data's either way.
     overburden: add what lies in the column above each particle (gns.overburden; needs
         gravity): not the paper's, an input for the weight a 2-3 hop neighbourhood cannot see.
+    wall_basis: K > 0 adds, for every wall, K Gaussians of the distance (in radii) from that
+        wall to where a free step would take the particle (its last velocity plus gravity),
+        centred at 0, 1, ..., K - 1 radii, std half a radius (gns.simulator.wall_basis). A
+        landing decelerates a particle only in the step that would take it within a radius or
+        two of the floor: a step in that distance, which the clipped distance feeds the network
+        only as a slope to fit. 0 (the paper's): none.
     """
 
     radius: float | None = None
@@ -346,11 +352,20 @@ class SceneConfig:
     obstacle_clip: float | None = None
     enforce_walls: bool = False
     overburden: bool = False
+    wall_basis: int = 0
 
     def __post_init__(self) -> None:
         for name in ("radius", "wall_clip", "obstacle_clip"):
             if getattr(self, name) is not None:
                 _positive(self, name)
+        if isinstance(self.wall_basis, bool) or not (
+            isinstance(self.wall_basis, int) and self.wall_basis >= 0
+        ):
+            raise ValueError(
+                f"SceneConfig.wall_basis must be an integer >= 0, got {self.wall_basis!r}"
+            )
+        if self.wall_basis and not self.walls:
+            raise ValueError(f"SceneConfig.wall_basis = {self.wall_basis} needs walls = true")
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,23 @@ from gns.overburden import overburden
 __all__ = ["LearnedSimulator", "Scene", "edge_capacity", "pad_edges"]
 
 
+def wall_basis(
+    positions: Tensor, bounds: Tensor, axes: Sequence[int], radius: float, k: int
+) -> Tensor:
+    """(N, 2 A K): for each of the A `axes`, the distance of `positions` (N, D) to the lower
+    then the upper bound (bounds (D, 2)), in radii, through K Gaussians centred at 0, 1, ...,
+    K - 1 radii with std 1/2 (exp(-2 (d - k)^2)); columns: lower bounds of `axes`, then upper
+    bounds, each K wide. Given where a free step takes a particle, a network reads off in one
+    layer whether that step lands it (scene.wall_basis)."""
+    index = torch.as_tensor(list(axes), dtype=torch.long, device=positions.device)
+    b = bounds.to(positions.device, positions.dtype)[index]
+    x = positions[:, index]
+    distance = torch.cat([x - b[:, 0], b[:, 1] - x], dim=1) / radius
+    centres = torch.arange(k, dtype=positions.dtype, device=positions.device)
+    basis = torch.exp(-2.0 * (distance[:, :, None] - centres) ** 2)
+    return basis.reshape(len(positions), -1)
+
+
 class _Statistics(Protocol):
     """metadata.json's statistics: gns.data.Metadata or gns.data.Statistics."""
 
@@ -67,7 +84,8 @@ class Scene:
     frames that far apart (see LearnedSimulator.frame_stride_for); None in checkpoints
     written before it was recorded. overburden: add the count and the upward momentum of the
     free particles in the column above each particle (gns.overburden, 2 features, half-width
-    R / 2, up against `gravity`).
+    R / 2, up against `gravity`). wall_basis: K Gaussians per wall of where a free step takes
+    each particle (wall_basis(), 2 K features per wall axis; needs walls).
     """
 
     dim: int
@@ -85,6 +103,7 @@ class Scene:
     obstacles: bool = False
     obstacle_clip: float = 1.0
     overburden: bool = False
+    wall_basis: int = 0
 
     def __post_init__(self) -> None:
         if self.dim not in (2, 3):
@@ -119,6 +138,8 @@ class Scene:
             )
         if self.dt is not None and not (math.isfinite(self.dt) and self.dt > 0):
             raise ValueError(f"Scene.dt must be a positive number of seconds, got {self.dt}")
+        if self.wall_basis < 0 or (self.wall_basis and not self.walls):
+            raise ValueError(f"Scene.wall_basis = {self.wall_basis} needs walls and K >= 0")
 
     @property
     def wall_axes(self) -> tuple[int, ...]:
@@ -184,6 +205,7 @@ class Scene:
             # that of a model saved before obstacle features existed (fine-tuning compares them).
             obstacle_clip=(config.obstacle_clip or wall_clip) if obstacles else 1.0,
             overburden=config.overburden,
+            wall_basis=config.wall_basis,
         )
 
     @classmethod
@@ -362,6 +384,7 @@ class LearnedSimulator(nn.Module):
             + 2 * len(scene.wall_axes)
             + (dim if scene.obstacles else 0)
             + (2 if scene.overburden else 0)
+            + 2 * len(scene.wall_axes) * scene.wall_basis
             + (scene.context_size - global_size)
             + scene.material_property_size
             + embedding_size
@@ -580,6 +603,8 @@ class LearnedSimulator(nn.Module):
         if self.overburden_normalizer is not None:
             raw = self._overburden(position_sequence, particle_type, n_node)
             nodes.append(self.overburden_normalizer.normalize(raw))
+        if self.scene.wall_basis:
+            nodes.append(self._wall_basis(position_sequence))
 
         global_features = None
         if self.context_normalizer is not None:
@@ -647,6 +672,18 @@ class LearnedSimulator(nn.Module):
             for part, shapes in zip(torch.split(host, counts), obstacles, strict=True)
         ]
         return torch.cat(parts)
+
+    def _wall_basis(self, position_sequence: Tensor) -> Tensor:
+        """(N, 2 A K) wall_basis() of the free step from the last two input frames, for the A
+        wall axes, in the positions' dtype."""
+        x = position_sequence[:, -1].double()
+        step = x - position_sequence[:, -2].double()
+        if self.scene.gravity is not None:
+            step = step + torch.tensor(self.scene.gravity, dtype=x.dtype, device=x.device)
+        basis = wall_basis(
+            x + step, self.bounds, self.scene.wall_axes, self.scene.radius, self.scene.wall_basis
+        )
+        return basis.to(position_sequence.dtype)
 
     def _overburden(
         self, position_sequence: Tensor, particle_type: Tensor, n_node: Tensor | None
