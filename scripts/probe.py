@@ -8,7 +8,7 @@ collapse, runout (docs/probes.md).
     python scripts/probe.py rest MODEL [MODEL ...] --data DATA [--split valid]
     python scripts/probe.py fall MODEL [MODEL ...] --data DATA [--split test]
         [--trajectories 0 1 ...] [--tol 0.1] [--speeds 0.25 0.5 1] [--steps 1 2 4 8]
-        [--noise-draws K]
+        [--heights 1 2 3 4 6 8 12 20] [--noise-draws K]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
         [--near-floor GAP [--start-speed 0.5]]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
@@ -45,6 +45,9 @@ tan(--friction-angle) as the context where the model takes one.
   A second table takes those within the wall clip of the floor, faster than the lowest
   --speeds, by steps of travel to the floor (bins at --steps): the share the truth keeps
   falling at g, the model's acceleration there, and both for the rest (the landing).
+  A third takes them by place and height above the floor (bins at --heights,
+  radii) and speed: where the truth falls on at every speed, a model that brakes there has
+  smoothed the landing over the heights above it.
   --noise-draws K adds, after the model's, its mean over K draws of its own training noise on
   the inputs: a model fitted to what training showed it reads the truth there (with
   noise.exact_last_position exactly; otherwise the correction fraction moves the target).
@@ -275,6 +278,7 @@ def fall(args) -> None:
     dataset = gns.data.open_dataset(args.data, args.split)
     edges = increasing(args.speeds, "--speeds")
     steps_edges = increasing(args.steps, "--steps")
+    height_edges = increasing(args.heights, "--heights")
     if args.noise_draws < 0:
         raise ValueError(f"--noise-draws must be >= 0, got {args.noise_draws}")
     places = (("bottom", -1), ("inside", 0), ("top", 1))
@@ -304,7 +308,7 @@ def fall(args) -> None:
                 part["noisy"] = probes.falling_in_data(truth, shaken[:, free], *common)["model"]
             parts.append(part)
         r = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-        results[name] = (r, scene.wall_clip * scene.radius, scene.dt)
+        results[name] = (r, scene.wall_clip * scene.radius, scene.dt, scene.radius)
 
     noisy = args.noise_draws > 0
     under_noise = (
@@ -321,7 +325,7 @@ def fall(args) -> None:
     )
     print("| model | walls | speed | bottom | inside | top |")
     print("|---|---|---|---|---|---|")
-    for name, (r, clip, dt) in results.items():
+    for name, (r, clip, dt, _) in results.items():
         seen = r["wall"] < clip
         speed = np.digitize(r["speed"] / dt, edges)
         for walls, mask in (("seen", seen), ("none", ~seen)):
@@ -349,7 +353,7 @@ def fall(args) -> None:
     print("|---|---|---|---|---|---|---|")
     labels, place_names = bin_labels(steps_edges), {p: n for n, p in places}
     number = lambda x: "-" if math.isnan(x) else f"{x:.2f}"  # noqa: E731
-    for name, (r, clip, dt) in results.items():
+    for name, (r, clip, dt, _) in results.items():
         slowest = edges[0] * dt
         rows = probes.approach_to_floor(r, clip, slowest, steps_edges, args.tol)
         under = [None] * len(rows)
@@ -368,6 +372,40 @@ def fall(args) -> None:
                 f"| {name} | {labels[row['bin']]} | {place_names[row['place']]} | "
                 f"{row['samples']} | {row['kept']:.2f} | {there} | {rest} |"
             )
+
+    print()
+    print(
+        "the same particles by height above the floor (radii) and speed at the last input "
+        "frame (m/s, down): the share the truth keeps falling, the truth's / the model's "
+        "acceleration over g" + (", the model's under its noise" if noisy else "") + " (samples)"
+    )
+    speed_labels, height_labels = bin_labels(edges), bin_labels(height_edges)
+    print("| model | place | height | " + " | ".join(speed_labels) + " |")
+    print("|---|---|---|" + "---|" * len(speed_labels))
+    for name, (r, _, dt, radius) in results.items():
+        scaled = {**r, "floor": r["floor"] / radius}
+        for place_name, place in places:
+            rows = probes.approach_by_height(scaled, place, height_edges, edges * dt, args.tol)
+            if noisy:
+                noisy_rows = probes.approach_by_height(
+                    {**scaled, "model": r["noisy"]}, place, height_edges, edges * dt, args.tol
+                )
+                for row, other in zip(rows, noisy_rows, strict=True):
+                    row["noisy"] = other["model"]
+            cells = {(row["height"], row["speed"]): row for row in rows}
+            for h, label in enumerate(height_labels):
+                if not any((h, v) in cells for v in range(len(speed_labels))):
+                    continue
+                shown = []
+                for v in range(len(speed_labels)):
+                    row = cells.get((h, v))
+                    if row is None:
+                        shown.append("-")
+                        continue
+                    keys = ("truth", "model", "noisy") if noisy else ("truth", "model")
+                    means = " / ".join(f"{row[key]:+.2f}" for key in keys)
+                    shown.append(f"{row['kept']:.2f} / {means} ({row['samples']})")
+                print(f"| {name} | {place_name} | {label} | " + " | ".join(shown) + " |")
 
 
 def spread(args) -> None:
@@ -628,6 +666,13 @@ def main() -> None:
     p.add_argument("--speeds", type=float, nargs="+", default=[0.25, 0.5, 1.0], help="m/s")
     p.add_argument(
         "--steps", type=float, nargs="+", default=[1, 2, 4, 8], help="steps of travel to the floor"
+    )
+    p.add_argument(
+        "--heights",
+        type=float,
+        nargs="+",
+        default=[1, 2, 3, 4, 6, 8, 12, 20],
+        help="radii above the floor",
     )
     p.add_argument(
         "--noise-draws",

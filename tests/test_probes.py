@@ -307,6 +307,39 @@ def test_approach_to_floor_bins_the_falling_by_steps_to_the_floor_and_what_follo
     assert (rows[0]["bin"], rows[0]["place"], rows[0]["kept"]) == (0, -1, 0.0)
 
 
+def test_approach_by_height_bins_each_place_by_height_and_speed():
+    """The block that stops dead at frame 12 with the 0.8 g stand-in model, against a loop
+    over the samples: per (height, speed) bin the share falling on, the truth's mean (1 before
+    the landing, -11 at it) and the model's (0.8)."""
+    truth = falling_block(20, landing=12)
+    one_step = np.full_like(truth, np.nan)
+    one_step[6:] = 2 * truth[5:-1] - truth[4:-2]
+    one_step[6:, :, 1] -= 0.8 * G
+    r = probes.falling_in_data(truth, one_step, G, 6, [[0.1, 0.9], [0.1, 0.9]], RADIUS)
+    heights, speeds = [0.01, 0.03, 0.06], [7.5 * G, 9.5 * G]
+    y0 = truth[0, :, 1]
+    place = np.where(y0 == y0.max(), 1, np.where(y0 == y0.min(), -1, 0))
+    for where in (-1, 0, 1):
+        rows = probes.approach_by_height(r, where, heights, speeds, tol=0.1)
+        expected = {}
+        for t in range(6, 13):
+            for i in np.flatnonzero(place == where):
+                height, speed = truth[t - 1, i, 1] - 0.1, (t - 1) * G
+                key = (sum(height >= e for e in heights), sum(speed >= e for e in speeds))
+                expected.setdefault(key, []).append(-11.0 if t == 12 else 1.0)
+        assert [(row["height"], row["speed"]) for row in rows] == sorted(expected)
+        for row in rows:
+            a = np.array(expected[row["height"], row["speed"]])
+            assert row["samples"] == len(a)
+            assert row["kept"] == pytest.approx(np.mean(a == 1.0))
+            assert row["truth"] == pytest.approx(a.mean(), abs=1e-6)
+            assert row["model"] == pytest.approx(0.8, abs=1e-6)
+    # The bins are used: the bottom row spans several heights and speeds, the landing's in one.
+    bottom = probes.approach_by_height(r, -1, heights, speeds, tol=0.1)
+    assert len({row["height"] for row in bottom}) > 1 and len({row["speed"] for row in bottom}) > 1
+    assert 0 < sum(row["kept"] < 1 for row in bottom) < len(bottom)
+
+
 def test_the_landing_timeline_tells_a_top_that_falls_through_from_one_that_stops():
     truth = falling_block(20, landing=12)
     rollout = truth.copy()
@@ -477,6 +510,19 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     def cells(lines: list[str]) -> list[str]:  # the first table's bottom, inside, top
         return [c.strip(" |") for line in lines[3 : lines.index("")] for c in line.split(" | ")[3:]]
 
+    # The third table, by place, height and speed, of every particle.
+    third = every.index("", every.index("") + 1) + 1
+    assert (
+        every[third + 1]
+        == "| model | place | height | "
+        + " | ".join(["under 0.25", "0.25-0.5", "0.5-1", "over 1"])
+        + " |"
+    ), every
+    grid = [line.split(" | ") for line in every[third + 3 :]]
+    assert grid and all(
+        row[0] == f"| {run}" and row[1] in ("bottom", "inside", "top") for row in grid
+    )
+    assert all(len(row) == 7 for row in grid), every
     every, shaken = cells(every), cells(shaken)
     assert any(cell != "-" for cell in every), every
     for plain, noisy in zip(every, shaken, strict=True):
@@ -492,7 +538,9 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
         [w, s] for w in ("seen", "none") for s in ("under 0.5", "over 0.5")
     ], fall
     assert fall[table + 1].startswith("| model | steps to floor | place | samples |"), fall
-    assert all(line.startswith(f"| {run} | ") for line in fall[table + 3 :]), fall
+    third = fall.index("", table) + 1  # by height and speed
+    assert all(line.startswith(f"| {run} | ") for line in fall[table + 3 : third - 1]), fall
+    assert fall[third + 1] == "| model | place | height | under 0.5 | over 0.5 |", fall
     spread = run_probe("spread", str(run), "--data", str(native), "--flowing", "0")
     assert spread[1].startswith("| model | trajectory | peak speed (m/s, step) | launch"), spread
     assert spread[-1].startswith(f"| {run} | all (sum; mean) | "), spread

@@ -50,6 +50,8 @@ GRAVITY = DEFAULT_GRAVITY  # m/s^2, along -y: the reference MPM's
 
 __all__ = [
     "GRAVITY",
+    "approach_by_height",
+    "approach_to_floor",
     "block_history",
     "fall_in_g",
     "falling_frames",
@@ -481,6 +483,45 @@ def approach_to_floor(
                     "model_kept": float(r["model"][on].mean()) if on.any() else math.nan,
                     "truth_rest": float(r["truth"][rest].mean()) if rest.any() else math.nan,
                     "model_rest": float(r["model"][rest].mean()) if rest.any() else math.nan,
+                }
+            )
+    return rows
+
+
+def approach_by_height(
+    samples: dict[str, np.ndarray],
+    place: int,
+    height_edges: Sequence[float],
+    speed_edges: Sequence[float],
+    tol: float,
+) -> list[dict[str, Any]]:
+    """The samples of falling_in_data at one `place` (-1 bottom, 0 inside, 1 top) by height
+    above the floor (bins at `height_edges`, the samples' units) and speed (per step, bins at
+    `speed_edges`). Where a landing starts is a height: a model that brakes above it where the
+    truth falls on at every speed has smoothed the landing's step in height, and neither more
+    information nor a faster block would show it the truth.
+
+    Returns a row per non-empty (height bin, speed bin), in that order: "height", "speed"
+    (bin indices as np.digitize's), "samples", "kept" (the share the truth keeps falling,
+    within tol of g), "truth" and "model" (their mean acceleration over g)."""
+    r = samples
+    heights = np.digitize(r["floor"], np.asarray(height_edges))
+    speeds = np.digitize(r["speed"], np.asarray(speed_edges))
+    here = r["surface"] == place
+    rows = []
+    for h in range(len(height_edges) + 1):
+        for v in range(len(speed_edges) + 1):
+            k = here & (heights == h) & (speeds == v)
+            if not k.any():
+                continue
+            rows.append(
+                {
+                    "height": h,
+                    "speed": v,
+                    "samples": int(k.sum()),
+                    "kept": float(np.mean(np.abs(r["truth"][k] - 1) <= tol)),
+                    "truth": float(r["truth"][k].mean()),
+                    "model": float(r["model"][k].mean()),
                 }
             )
     return rows
