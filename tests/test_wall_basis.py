@@ -38,7 +38,7 @@ def test_the_basis_matches_the_definition(dim, axes):
     rng = np.random.default_rng(dim)
     x = rng.uniform(-0.05, 1.05, (30, dim))  # some beyond the walls: negative distances
     bounds = [(0.0, 1.0)] * dim
-    got = wall_basis(torch.tensor(x), torch.tensor(bounds), axes, R, 4)
+    got = wall_basis(torch.tensor(x), bounds, axes, R, 4)
     np.testing.assert_allclose(got.numpy(), by_loop(x, bounds, axes, R, 4), rtol=1e-12)
 
 
@@ -81,6 +81,10 @@ def test_a_free_step_to_one_radius_above_the_floor_reads_the_second_gaussian():
     at_rest = sim.features(resting, torch.tensor([6]))["node_features"][0]
     floor = at_rest[plain.node_input_size + 4 : plain.node_input_size + 8]
     assert int(torch.argmax(floor)) == 3  # 3 R less gravity's 0.03 R
+    # The scene's bounds are what it reads (the floor probe moves them): a floor 1 R higher.
+    sim.scene = dataclasses.replace(sim.scene, bounds=((0.0, 1.0), (R, 1.0)))
+    higher = sim.features(resting, torch.tensor([6]))["node_features"][0]
+    assert int(torch.argmax(higher[plain.node_input_size + 4 : plain.node_input_size + 8])) == 2
 
 
 def test_bad_values_are_named():

@@ -39,17 +39,20 @@ __all__ = ["LearnedSimulator", "Scene", "edge_capacity", "pad_edges"]
 
 
 def wall_basis(
-    positions: Tensor, bounds: Tensor, axes: Sequence[int], radius: float, k: int
+    positions: Tensor,
+    bounds: Sequence[tuple[float, float]],
+    axes: Sequence[int],
+    radius: float,
+    k: int,
 ) -> Tensor:
     """(N, 2 A K): for each of the A `axes`, the distance of `positions` (N, D) to the lower
-    then the upper bound (bounds (D, 2)), in radii, through K Gaussians centred at 0, 1, ...,
-    K - 1 radii with std 1/2 (exp(-2 (d - k)^2)); columns: lower bounds of `axes`, then upper
-    bounds, each K wide. Given where a free step takes a particle, a network reads off in one
-    layer whether that step lands it (scene.wall_basis)."""
-    index = torch.as_tensor(list(axes), dtype=torch.long, device=positions.device)
-    b = bounds.to(positions.device, positions.dtype)[index]
-    x = positions[:, index]
-    distance = torch.cat([x - b[:, 0], b[:, 1] - x], dim=1) / radius
+    then the upper bound (`bounds`, D pairs), in radii, through K Gaussians centred at 0, 1,
+    ..., K - 1 radii with std 1/2 (exp(-2 (d - k)^2)); columns: the lower bounds of `axes`,
+    then the upper bounds, each K wide. Given where a free step takes a particle, a network
+    reads off in one layer whether that step lands it (scene.wall_basis)."""
+    lower = [positions[:, a] - bounds[a][0] for a in axes]
+    upper = [bounds[a][1] - positions[:, a] for a in axes]
+    distance = torch.stack(lower + upper, dim=1) / radius
     centres = torch.arange(k, dtype=positions.dtype, device=positions.device)
     basis = torch.exp(-2.0 * (distance[:, :, None] - centres) ** 2)
     return basis.reshape(len(positions), -1)
@@ -674,14 +677,16 @@ class LearnedSimulator(nn.Module):
         return torch.cat(parts)
 
     def _wall_basis(self, position_sequence: Tensor) -> Tensor:
-        """(N, 2 A K) wall_basis() of the free step from the last two input frames, for the A
-        wall axes, in the positions' dtype."""
+        """(N, 2 A K) wall_basis() of where a free step from the last two input frames takes
+        each particle, for the A wall axes, in the positions' dtype. The scene's bounds, as
+        the wall features read them (the floor probe moves them)."""
         x = position_sequence[:, -1].double()
-        step = x - position_sequence[:, -2].double()
-        if self.scene.gravity is not None:
-            step = step + torch.tensor(self.scene.gravity, dtype=x.dtype, device=x.device)
+        free = 2 * x - position_sequence[:, -2].double()  # at the last velocity
+        # Gravity's step added to the positions is the bounds less it (no tensor to copy).
+        gravity = self.scene.gravity or (0.0,) * self.scene.dim
+        bounds = [(lo - g, hi - g) for (lo, hi), g in zip(self.scene.bounds, gravity, strict=True)]
         basis = wall_basis(
-            x + step, self.bounds, self.scene.wall_axes, self.scene.radius, self.scene.wall_basis
+            free, bounds, self.scene.wall_axes, self.scene.radius, self.scene.wall_basis
         )
         return basis.to(position_sequence.dtype)
 
