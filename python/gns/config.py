@@ -338,7 +338,9 @@ class SceneConfig:
         centred at 0, 1, ..., K - 1 radii, std half a radius (gns.simulator.wall_basis). A
         landing decelerates a particle only in the step that would take it within a radius or
         two of the floor: a step in that distance, which the clipped distance feeds the network
-        only as a slope to fit. 0 (the paper's): none.
+        only as a slope to fit. 0 (the paper's): none. On the sand model's first stage (K = 6,
+        two seeds, 16000 steps) it halved the braking of slower sand 2-4 R above the floor,
+        not of the fastest, and packed the landings more (docs/sand-ablation.md, session 44).
     """
 
     radius: float | None = None
