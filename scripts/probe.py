@@ -311,6 +311,7 @@ def fall(args) -> None:
         results[name] = (r, scene.wall_clip * scene.radius, scene.dt, scene.radius)
 
     noisy = args.noise_draws > 0
+    keys = ("truth", "model", "noisy") if noisy else ("truth", "model")  # the cells' figures
     under_noise = (
         f"; after the model's, its mean over {args.noise_draws} draws of its training noise"
         if noisy
@@ -336,7 +337,6 @@ def fall(args) -> None:
                     if not k.any():
                         cells.append("-")
                         continue
-                    keys = ("truth", "model", "noisy") if noisy else ("truth", "model")
                     means = " / ".join(f"{r[key][k].mean():.2f}" for key in keys)
                     cells.append(f"{means} ({k.sum()})")
                 print(f"| {name} | {walls} | {label} | " + " | ".join(cells) + " |")
@@ -402,7 +402,6 @@ def fall(args) -> None:
                     if row is None:
                         shown.append("-")
                         continue
-                    keys = ("truth", "model", "noisy") if noisy else ("truth", "model")
                     means = " / ".join(f"{row[key]:+.2f}" for key in keys)
                     shown.append(f"{row['kept']:.2f} / {means} ({row['samples']})")
                 print(f"| {name} | {place_name} | {label} | " + " | ".join(shown) + " |")
