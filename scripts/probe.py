@@ -45,9 +45,9 @@ tan(--friction-angle) as the context where the model takes one.
   A second table takes those within the wall clip of the floor, faster than the lowest
   --speeds, by steps of travel to the floor (bins at --steps): the share the truth keeps
   falling at g, the model's acceleration there, and both for the rest (the landing).
-  A third takes them by place and height above the floor (bins at --heights,
-  radii) and speed: where the truth falls on at every speed, a model that brakes there has
-  smoothed the landing over the heights above it.
+  A third takes them by place, height above the floor (bins at --heights, radii) and speed:
+  where the truth falls on at every speed, a model that brakes there has smoothed the
+  landing over the heights above it.
   --noise-draws K adds, after the model's, its mean over K draws of its own training noise on
   the inputs: a model fitted to what training showed it reads the truth there (with
   noise.exact_last_position exactly; otherwise the correction fraction moves the target).

@@ -497,9 +497,8 @@ def approach_by_height(
 ) -> list[dict[str, Any]]:
     """The samples of falling_in_data at one `place` (-1 bottom, 0 inside, 1 top) by height
     above the floor (bins at `height_edges`, the samples' units) and speed (per step, bins at
-    `speed_edges`). Where a landing starts is a height: a model that brakes above it where the
-    truth falls on at every speed has smoothed the landing's step in height, and neither more
-    information nor a faster block would show it the truth.
+    `speed_edges`). Where a landing starts is a height: a model that brakes above it, where
+    the truth falls on at every speed, has smoothed the landing's step over the heights above.
 
     Returns a row per non-empty (height bin, speed bin), in that order: "height", "speed"
     (bin indices as np.digitize's), "samples", "kept" (the share the truth keeps falling,
