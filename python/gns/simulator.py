@@ -679,7 +679,9 @@ class LearnedSimulator(nn.Module):
     def _wall_basis(self, position_sequence: Tensor) -> Tensor:
         """(N, 2 A K) wall_basis() of where a free step from the last two input frames takes
         each particle, for the A wall axes, in the positions' dtype. The scene's bounds, as
-        the wall features read them (the floor probe moves them)."""
+        the wall features read them (the floor probe moves them). In torch, not through
+        gns.ops.wall_features: the free step lives on the model's device, and the Rust core
+        would cost one more copy to the host at every step."""
         x = position_sequence[:, -1].double()
         free = 2 * x - position_sequence[:, -2].double()  # at the last velocity
         # Gravity's step added to the positions is the bounds less it (no tensor to copy).
