@@ -33,6 +33,10 @@ tan(--friction-angle) as the context where the model takes one.
   from the truth's; the mean vertical acceleration (g, up positive) and neighbour count of
   the lowest, middle and highest third of the particles (by height in the first frame)
   around the landing (the first frame at which the lowest third decelerates by --threshold g).
+  After each landing, and over all of them: the largest rollout / truth density of any third
+  (how many landings stay within --density-limit), and each third's share of the truth's
+  stop that the one-step predictions give (summed where the truth decelerates by more than
+  --threshold g).
 - rest: one step from each trajectory's last C + 1 frames (a settled pile), the predicted
   vertical acceleration (g, up positive) by height above the floor (below R, 1-3 R, 3-6 R,
   above 6 R): the truth's is about 0, and a model that pushes the pile down by a tenth of g
@@ -167,6 +171,7 @@ def landing(args) -> None:
     stride = simulator.frame_stride_for(dataset.metadata)
     g, radius = probes.g_step(simulator), simulator.scene.radius
     chosen = args.trajectories if args.trajectories else range(len(dataset))
+    ratios, stopping_truth, stopping_one_step = [], 0.0, 0.0
     for index in chosen:
         trajectory = at_frame_stride(dataset[index], stride)
         truth = trajectory.positions.astype(np.float64)
@@ -213,6 +218,26 @@ def landing(args) -> None:
                 for b in bands
             ]
             print(f"| {t - r['landing']:+d} | " + " | ".join(a + d) + " |")
+        ratios.append(r["density_ratio"])
+        stopping_truth = stopping_truth + r["stopping_truth"]
+        stopping_one_step = stopping_one_step + r["stopping_one_step"]
+        print(
+            f"largest density over the truth's: {r['density_ratio']:.2f}; one step from the "
+            f"truth, share of its stop (over {args.threshold:g} g), bands low to high: "
+            + _shares(r["stopping_one_step"], r["stopping_truth"])
+        )
+    if ratios:
+        within = sum(ratio <= args.density_limit for ratio in ratios)
+        print(
+            f"{args.model}: {within} of {len(ratios)} landings within {args.density_limit:g} of "
+            f"the truth's density (largest {np.max(ratios):.2f}); share of the truth's stop one "
+            "step from it, bands low to high: " + _shares(stopping_one_step, stopping_truth)
+        )
+
+
+def _shares(model: np.ndarray, truth: np.ndarray) -> str:
+    """Each band's model / truth, or "-" where the truth's band never stops."""
+    return " / ".join(f"{m / t:.2f}" if t > 0 else "-" for m, t in zip(model, truth, strict=True))
 
 
 @torch.no_grad()
@@ -650,6 +675,13 @@ def main() -> None:
     p.add_argument("--trajectories", type=int, nargs="*")
     p.add_argument("--bands", type=int, default=3)
     p.add_argument("--threshold", type=float, default=3.0, help="g; default 3")
+    p.add_argument(
+        "--density-limit",
+        type=float,
+        default=1.5,
+        help="the landings whose rollout stays within this many times the truth's density are "
+        "counted; default 1.5 (issue 39's goal)",
+    )
     p.set_defaults(run=landing)
     p = probes_.add_parser("rest")
     p.add_argument("models", nargs="+")

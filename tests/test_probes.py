@@ -201,6 +201,10 @@ def test_the_landing_timeline_of_a_block_that_stops_dead():
     expected = [counts[third].mean() for third in thirds]
     np.testing.assert_allclose(r["density_truth"][3], expected, rtol=1e-12)
     np.testing.assert_allclose(r["density_rollout"], r["density_truth"], rtol=1e-12)
+    # The stop is frame 12's 11 g in each band, all of it given; density never departs.
+    np.testing.assert_allclose(r["stopping_truth"], 11.0, rtol=1e-6)
+    np.testing.assert_allclose(r["stopping_one_step"], r["stopping_truth"], rtol=1e-9)
+    assert r["density_ratio"] == pytest.approx(1.0, rel=1e-12)
 
 
 def test_surface_finds_the_top_and_bottom_rows_of_a_lattice_and_a_lone_particle():
@@ -352,6 +356,35 @@ def test_the_landing_timeline_tells_a_top_that_falls_through_from_one_that_stops
     assert r["rollout"][at, 2] == pytest.approx(-1.0, abs=1e-6)
     assert r["rollout"][at, 0] == pytest.approx(11.0, rel=1e-6)
     assert r["density_rollout"][at + 3, 2] > r["density_truth"][at + 3, 2]
+    # The largest density ratio, counted by hand (scipy) at every frame and third.
+    band = probes.height_bands(truth[0], 3)
+
+    def thirds(frame: np.ndarray) -> np.ndarray:
+        tree = cKDTree(frame)
+        counts = np.array([len(n) - 1 for n in tree.query_ball_point(frame, RADIUS * (1 + 1e-9))])
+        return np.array([counts[band == b].mean() for b in range(3)])
+
+    ratios = [thirds(rollout[t]) / thirds(truth[t]) for t in r["frames"]]
+    assert r["density_ratio"] == pytest.approx(np.max(ratios), rel=1e-12)
+    assert r["density_ratio"] > 1.5
+
+
+def test_the_landing_timeline_gives_each_band_its_share_of_the_stop():
+    """One step from the truth, a stand-in model stops the bottom third whole, the middle by
+    half and the top not at all (it falls on at g): shares 1, 1/2 and -1/11."""
+    truth = falling_block(20, landing=12)
+    band = probes.height_bands(truth[0], 3)
+    one_step = truth.copy()
+    free = 2 * truth[11] - truth[10] - [0.0, G]  # where frame 12 is without the stop
+    one_step[12, band == 1] = (truth[12, band == 1] + free[band == 1]) / 2
+    one_step[12, band == 2] = free[band == 2]
+    r = probes.landing_timeline(truth, truth, one_step, RADIUS, G)
+    np.testing.assert_allclose(r["stopping_truth"], 11.0, rtol=1e-6)
+    np.testing.assert_allclose(r["stopping_one_step"], [11.0, 5.0, -1.0], rtol=1e-6, atol=1e-6)
+    # A rollout that ends before the landing's last frame has no density there: NaN, not 1.
+    cut = truth.copy()
+    cut[15:] = np.nan
+    assert np.isnan(probes.landing_timeline(truth, cut, truth, RADIUS, G)["density_ratio"])
 
 
 def test_a_trajectory_without_a_landing_says_so():
@@ -494,6 +527,18 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
     assert [line.split("|")[1].strip() for line in floor[3:]] == ["at rest", "landing"], floor
     landing = run_probe("landing", str(run), str(native), "test", "--trajectories", "0")
     assert re.match(rf"{re.escape(str(run))} on test trajectory 0: ", landing[0]), landing
+    assert landing[-1].endswith("no landing (the lowest band never decelerates by 3 g)")
+    # Any acceleration over -1000 g is a "landing": its table, then the summary of all landings.
+    landing = run_probe(
+        "landing", str(run), str(native), "test", "--trajectories", "0", "--threshold", "-1000"
+    )
+    share = r"(-?\d+\.\d\d|nan|-)"
+    assert re.fullmatch(
+        rf"{re.escape(str(run))}: [01] of 1 landings within 1\.5 of the truth's density "
+        rf"\(largest (\d+\.\d\d|nan)\); share of the truth's stop one step from it, bands low "
+        rf"to high: {share} / {share} / {share}",
+        landing[-1],
+    ), landing
     rest = run_probe("rest", str(run), "--data", str(native), "--split", "test")
     assert rest[2].startswith("| model | below R | 1-3 R | 3-6 R | above 6 R |"), rest
     assert rest[4].startswith(f"| {run} | ") and rest[4].count("|") == 7, rest

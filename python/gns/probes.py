@@ -558,7 +558,12 @@ def landing_timeline(
     within the trajectory), and, each (frames, bands): "truth", "one_step" and "rollout" (the
     band's mean vertical acceleration in g at that frame: the acceleration that arrives at
     it, x_t - 2 x_{t-1} + x_{t-2}), "density_truth" and "density_rollout" (the band's mean
-    number of neighbours within the radius).
+    number of neighbours within the radius). Two summaries: "stopping_truth" and
+    "stopping_one_step", (bands,), each band's acceleration summed over the frames where the
+    truth's exceeds `threshold` g (how much of the stop one step from the truth gives each
+    height: the upper layers' share is what a model that cannot see the landing up the block
+    lacks), and "density_ratio", the largest rollout / truth density of any band and frame
+    (NaN once the rollout has no frame).
     """
     truth = np.asarray(truth, dtype=np.float64)
     band = height_bands(truth[0], bands)
@@ -591,6 +596,10 @@ def landing_timeline(
         density = by_band(neighbour_counts(rollout[t], radius)) if finite else np.nan
         rows["density_rollout"].append(np.broadcast_to(density, (bands,)))
     result.update({k: np.array(v) for k, v in rows.items()})
+    stopping = result["truth"] > threshold
+    result["stopping_truth"] = np.where(stopping, result["truth"], 0.0).sum(axis=0)
+    result["stopping_one_step"] = np.where(stopping, result["one_step"], 0.0).sum(axis=0)
+    result["density_ratio"] = (result["density_rollout"] / result["density_truth"]).max()
     return result
 
 
