@@ -426,8 +426,9 @@ class TrainConfig:
         about 80% of their squares, the moments of landing). It fits towards the majority
         of what the network cannot tell apart, not the mean: on the sand model, trained from
         the start with delta 1, sand falling near the floor no longer brakes for a landing
-        that may come, but a landing's stop, skewed, is fitted at a third of its mean, and
-        the landings pack more (docs/sand-ablation.md, session 45).
+        that may come, but the few large stops are treated as outliers (a landing fitted
+        at a third of its size by 16000 steps), and the landings pack more
+        (docs/sand-ablation.md, session 45).
     target_weight: each particle's loss is multiplied by 1 + target_weight |a|, |a| the 2-norm
         of its normalised target acceleration, so that impacts count more than their square
         alone; 0 (the paper's): every particle alike. On the sand model neither this nor
