@@ -181,6 +181,15 @@ def falling_block(frames: int, landing: int) -> np.ndarray:
     return np.stack([block + [0.0, (landing - 1) * landing * G / 2 - d] for d in drop])
 
 
+def density_by_thirds(frame: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """Neighbours within R of each particle (scipy), averaged over thirds of the particles by
+    their height in `first`: the landing timeline's density, counted independently."""
+    tree = cKDTree(frame)
+    counts = np.array([len(n) - 1 for n in tree.query_ball_point(frame, RADIUS * (1 + 1e-9))])
+    thirds = np.array_split(np.argsort(first[:, 1], kind="stable"), 3)
+    return np.array([counts[third].mean() for third in thirds])
+
+
 def test_the_landing_timeline_of_a_block_that_stops_dead():
     truth = falling_block(20, landing=12)
     r = probes.landing_timeline(truth, truth, truth, RADIUS, G, bands=3, before=3, after=4)
@@ -194,11 +203,7 @@ def test_the_landing_timeline_of_a_block_that_stops_dead():
     np.testing.assert_allclose(r["one_step"], r["truth"], atol=1e-9)
     np.testing.assert_allclose(r["rollout"], r["truth"], atol=1e-9)
     # Density: neighbours within R of each particle (scipy), by thirds of the height.
-    tree = cKDTree(truth[12])
-    counts = np.array([len(n) - 1 for n in tree.query_ball_point(truth[12], RADIUS * (1 + 1e-9))])
-    order = np.argsort(truth[0][:, 1], kind="stable")
-    thirds = np.array_split(order, 3)
-    expected = [counts[third].mean() for third in thirds]
+    expected = density_by_thirds(truth[12], truth[0])
     np.testing.assert_allclose(r["density_truth"][3], expected, rtol=1e-12)
     np.testing.assert_allclose(r["density_rollout"], r["density_truth"], rtol=1e-12)
     # The stop is frame 12's 11 g in each band, all of it given; density never departs.
@@ -357,14 +362,10 @@ def test_the_landing_timeline_tells_a_top_that_falls_through_from_one_that_stops
     assert r["rollout"][at, 0] == pytest.approx(11.0, rel=1e-6)
     assert r["density_rollout"][at + 3, 2] > r["density_truth"][at + 3, 2]
     # The largest density ratio, counted by hand (scipy) at every frame and third.
-    band = probes.height_bands(truth[0], 3)
-
-    def thirds(frame: np.ndarray) -> np.ndarray:
-        tree = cKDTree(frame)
-        counts = np.array([len(n) - 1 for n in tree.query_ball_point(frame, RADIUS * (1 + 1e-9))])
-        return np.array([counts[band == b].mean() for b in range(3)])
-
-    ratios = [thirds(rollout[t]) / thirds(truth[t]) for t in r["frames"]]
+    ratios = [
+        density_by_thirds(rollout[t], truth[0]) / density_by_thirds(truth[t], truth[0])
+        for t in r["frames"]
+    ]
     assert r["density_ratio"] == pytest.approx(np.max(ratios), rel=1e-12)
     assert r["density_ratio"] > 1.5
 
