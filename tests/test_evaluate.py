@@ -184,6 +184,40 @@ def test_deposit_of_the_model_the_baselines_and_the_truth_by_hand():
     assert "front_x_p1" not in report["mean"]["model"] and "mse" not in report["mean"]["model"]
 
 
+def test_density_through_the_rollout_against_a_pair_count():
+    # The model's frame 7 squeezed to half its size about its centre (a landing that packs),
+    # every other frame the truth's: its worst density is that frame's, the last frame's is
+    # right. The baselines move the particles rigidly: 1 at every frame.
+    rollout = synthetic_rollout()
+    rollout.metadata["connectivity_radius"] = radius = 0.15
+    free = rollout.particle_type != 3
+    frame = rollout.predicted_rollout[7]
+    centre = frame[free].mean(axis=0)
+    frame[free] = centre + 0.5 * (frame[free] - centre)
+
+    def neighbours(x: np.ndarray) -> float:
+        d = np.linalg.norm(x[:, None] - x[None], axis=-1)
+        return float(((d <= radius).sum() - len(x)) / len(x))
+
+    (entry,) = evaluate_rollouts([rollout])["trajectories"]
+    model, truth = entry["model"], entry["ground_truth"]
+    np.testing.assert_allclose(
+        model["neighbours_by_frame"], [neighbours(f[free]) for f in rollout.predicted_rollout]
+    )
+    worst = neighbours(frame[free]) / neighbours(rollout.ground_truth_rollout[7, free])
+    assert worst > 1.5
+    assert model["density_ratio_max"] == pytest.approx(worst, rel=1e-12)
+    assert model["density_ratio"] == truth["density_ratio_max"] == 1.0
+    assert entry["static"]["density_ratio_max"] == pytest.approx(1.0, rel=1e-12)
+    json.dumps(entry)  # the curves are plain lists
+    # A diverged rollout packs infinitely at its worst, in the mean over trajectories too.
+    bad = synthetic_rollout(diverged_at=3)
+    bad.metadata["connectivity_radius"] = radius
+    report = evaluate_rollouts([rollout, bad])
+    assert report["mean"]["model"]["density_ratio_max"] == np.inf
+    assert report["mean"]["static"]["density_ratio_max"] == pytest.approx(1.0, rel=1e-12)
+
+
 def test_without_bounds_the_floor_is_the_truths_lowest_particle_at_frame_0():
     rollout = synthetic_rollout()
     del rollout.metadata["bounds"]

@@ -781,6 +781,33 @@ def test_deposit_of_a_lattice_and_of_it_stretched_against_it():
     assert deposit_ratios(broken, truth)["density_ratio"] == math.inf
 
 
+def test_density_ratio_max_is_the_worst_frame_not_the_last():
+    # A landing that packs and relaxes: the square lattice squeezed to 0.7 and 0.6 of its size
+    # (spacing 0.007, 0.006; no pair near the radius 0.015) in frames 1-2 and back in frame 3,
+    # against the lattice held still. Mean neighbours per frame by scipy's pair count.
+    from scipy.spatial import cKDTree
+
+    free = np.ones(len(SQUARE), bool)
+    ours_frames = np.stack([SQUARE, 0.7 * SQUARE, 0.6 * SQUARE, SQUARE])
+    counts = [2 * len(cKDTree(f).query_pairs(0.015)) / len(f) for f in ours_frames]
+    ours = deposit(ours_frames, free, 0.0, radius=0.015)
+    truth = deposit(np.stack([SQUARE] * 4), free, 0.0, radius=0.015)
+    np.testing.assert_allclose(ours["neighbours_by_frame"], counts, rtol=1e-12)
+    assert counts[2] > counts[1] > counts[0] == counts[3]
+    ratios = deposit_ratios(ours, truth)
+    assert ratios["density_ratio"] == 1.0  # the last frame has relaxed
+    assert ratios["density_ratio_max"] == pytest.approx(counts[2] / counts[0], rel=1e-12)
+    # Diverged at frame 3: inf from there on, and at its worst.
+    ours_frames[3, 5] = np.inf
+    broken = deposit(ours_frames, free, 0.0, radius=0.015)
+    assert broken["neighbours_by_frame"][3] == math.inf
+    assert deposit_ratios(broken, truth)["density_ratio_max"] == math.inf
+    # Over different frames there is no frame-by-frame ratio to take; the last frame's stays.
+    shorter = deposit(np.stack([SQUARE] * 3), free, 0.0, radius=0.015)
+    assert "density_ratio_max" not in deposit_ratios(ours, shorter)
+    assert deposit_ratios(ours, shorter)["density_ratio"] == 1.0
+
+
 def test_ratio_of_never_divides_by_zero_into_nan():
     assert ratio_of(3.0, 2.0) == 1.5
     assert ratio_of(0.0, 0.0) == 1.0  # a single particle against a single particle: the same

@@ -8,8 +8,9 @@ interpolation between order statistics) over the particles a mask selects, in po
 `pile_height` (the 99th percentile of y in one frame above a floor, `pile_floor`), with
 `pile_base` (the 1st percentile: a pile resting on the floor reads about 0). They need no
 particle correspondence, so they compare any two simulators of the same scene. `deposit` gathers
-them for a rollout's last frame with `mean_neighbours` (how densely it packs; the radius search
-is the Rust core's), and `deposit_ratios` sets them against the ground truth's.
+them for a rollout's last frame with `mean_neighbours` (how densely it packs, also frame by
+frame; the radius search is the Rust core's), and `deposit_ratios` sets them against the ground
+truth's.
 
 All functions take numpy arrays (anything `np.asarray` accepts), compute in float64 and return
 Python floats or float64 arrays; a diverged (non-finite) frame raises ValueError or, with
@@ -38,6 +39,7 @@ from gns.metric_inputs import (
 __all__ = [
     "DEPOSIT_CURVES",
     "DEPOSIT_FIGURES",
+    "FRONT_CURVES",
     "deposit",
     "deposit_ratios",
     "front_positions",
@@ -194,8 +196,10 @@ DEPOSIT_FIGURES = (
     "runout_ratio",
     "height_ratio",
     "density_ratio",
+    "density_ratio_max",
 )
-DEPOSIT_CURVES = ("front_x_p1", "front_x_p99")
+FRONT_CURVES = ("front_x_p1", "front_x_p99")
+DEPOSIT_CURVES = (*FRONT_CURVES, "neighbours_by_frame")
 # Each ratio of `deposit_ratios` and the figure of `deposit` it compares.
 _RATIOS = {"runout_ratio": "runout", "height_ratio": "pile_height", "density_ratio": "neighbours"}
 
@@ -222,9 +226,12 @@ def deposit(
       front_x_p1, front_x_p99
                     (S,) arrays: the 1st and the 99th percentile of x in every frame
                     (front_positions), how the fronts advance
+      neighbours_by_frame
+                    (S,) array: mean_neighbours of every frame, how the packing evolves (a
+                    landing packs sand that the last frame may no longer show); with a radius
 
     A rollout whose last frame is not finite (it diverged) has inf for the three scalars, and
-    inf fronts from the first non-finite frame on.
+    inf fronts and neighbours from the first non-finite frame on.
     """
     frames = float_array("positions", positions, "(S, N, D)", 3)
     keep = particle_mask(mask, frames.shape[1])
@@ -234,11 +241,15 @@ def deposit(
     if floor is not None and frames.shape[-1] > HEIGHT_AXIS:
         figures["pile_height"] = pile_height(last, keep, floor, nonfinite="inf")
         figures["pile_base"] = pile_base(last, keep, floor, nonfinite="inf")
-    if radius is not None:
-        finite = bool(np.isfinite(last[keep]).all())
-        packed = mean_neighbours(last[keep], radius, bounds, periodic) if finite else math.inf
-        figures["neighbours"] = packed
     figures.update(front_x_p1=fronts[:, 0], front_x_p99=fronts[:, 1])
+    if radius is not None:
+        packed = np.full(len(frames), math.inf)
+        for i, frame in enumerate(frames[:, keep]):
+            if not np.isfinite(frame).all():
+                break  # diverged: this frame and every later one count as inf
+            packed[i] = mean_neighbours(frame, radius, bounds, periodic)
+        figures["neighbours"] = float(packed[-1])
+        figures["neighbours_by_frame"] = packed
     return figures
 
 
@@ -254,12 +265,19 @@ def deposit_ratios(ours: dict[str, Any], truth: dict[str, Any]) -> dict[str, flo
     """Two `deposit`s compared, ours over the ground truth's, for the figures both have:
     runout_ratio (runout), height_ratio (pile_height) and density_ratio (neighbours). 1 is
     right; a simulator that loses volume packs its particles ever closer (density_ratio above
-    1) and often spreads too little (runout_ratio below 1); inf: ours diverged."""
-    return {
+    1) and often spreads too little (runout_ratio below 1); inf: ours diverged. Where both
+    have neighbours_by_frame over the same frames, density_ratio_max: the largest of the
+    frame-by-frame ratios, how far it packs at its worst (a landing), which the last frame's
+    density_ratio may not show once the pile relaxes."""
+    ratios = {
         ratio: ratio_of(float(ours[key]), float(truth[key]))
         for ratio, key in _RATIOS.items()
         if key in ours and key in truth
     }
+    curves = [np.asarray(d.get("neighbours_by_frame", ())) for d in (ours, truth)]
+    if len(curves[0]) and curves[0].shape == curves[1].shape:
+        ratios["density_ratio_max"] = float(max(map(ratio_of, *curves)))
+    return ratios
 
 
 def mean_neighbours(

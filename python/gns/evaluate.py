@@ -173,7 +173,7 @@ def _deposit_entry(ours: dict[str, Any], truth: dict[str, Any]) -> dict[str, Any
     """A deposit and its ratios as plain JSON values (curves as lists)."""
     entry: dict[str, Any] = {k: float(v) for k, v in ours.items() if k not in DEPOSIT_CURVES}
     entry.update(deposit_ratios(ours, truth))
-    entry.update({k: np.asarray(ours[k]).tolist() for k in DEPOSIT_CURVES})
+    entry.update({k: np.asarray(ours[k]).tolist() for k in DEPOSIT_CURVES if k in ours})
     return entry
 
 
@@ -204,8 +204,12 @@ def evaluate_rollouts(
                                            mean neighbour count within the connectivity radius
       runout_ratio, height_ratio, density_ratio
                                            those three over the ground truth's (1 is right)
-      mse, front_x_p1, front_x_p99         per-frame MSE and the 1st and 99th percentiles of x
-                                           (the fronts) of every predicted frame
+      density_ratio_max                    the largest over frames of the mean neighbour
+                                           count over the truth's: the packing at its worst
+      mse, front_x_p1, front_x_p99, neighbours_by_frame
+                                           per-frame MSE, the 1st and 99th percentiles of x
+                                           (the fronts) and the mean neighbour count of every
+                                           predicted frame
       wall_corrections, wall_correction_max
                                            the model's, when its rollout enforced the walls:
                                            particle-steps put back on a wall, the largest move
@@ -460,7 +464,7 @@ def summary_table(mean: dict[str, dict[str, float]]) -> str:
         "last frame: runout = 99th - 1st percentile of x, pile_height and pile_base = 99th and "
         "1st percentile\nof y above the floor, neighbours within the connectivity radius; "
         "*_ratio: over the truth's "
-        "(1 is right); cv/model, static/model:\nthe baseline's error over the model's (above "
-        "1: the model is better)"
+        "(1 is right); density_ratio_max:\nthe largest over frames; cv/model, static/model: "
+        "the baseline's error over the model's (above 1: the\nmodel is better)"
     )
     return "\n".join(lines)

@@ -296,7 +296,9 @@ def _learned_row(
         scores.append(scoring(predicted, trajectory))
         # Its deposit travels with the saved rollout; the fronts of the frames it has.
         result.metrics.update({k: scores[-1][k] for k in DEPOSIT_FIGURES if k in scores[-1]})
-        result.metrics.update({k: scores[-1][k][: result.num_steps] for k in DEPOSIT_CURVES})
+        result.metrics.update(
+            {k: scores[-1][k][: result.num_steps] for k in DEPOSIT_CURVES if k in scores[-1]}
+        )
         save_rollout(rollout_path(rollouts_dir, split, index), result)
         predictions.append(predicted)
         seconds.append(np.stack([result.timings[part] for part in TIMING_PARTS]))

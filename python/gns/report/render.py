@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from gns.data.stride import describe_frame_stride, spacing_text
-from gns.deposit import DEPOSIT_CURVES
+from gns.deposit import FRONT_CURVES
 from gns.distances import EXACT_MAX_POINTS
 from gns.files import write_bytes_atomic
 from gns.report.measure import METRICS, TIMING_PARTS, Row, _count
@@ -224,7 +224,7 @@ def _write_figures(
 
 def _fronts(deposit: dict[str, Any]) -> np.ndarray:
     """(S, 2): a deposit's fronts (the 1st and the 99th percentile of x) side by side."""
-    return np.stack([deposit[k] for k in DEPOSIT_CURVES], axis=1)
+    return np.stack([deposit[k] for k in FRONT_CURVES], axis=1)
 
 
 def _write_media(
