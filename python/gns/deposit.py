@@ -231,7 +231,7 @@ def deposit(
                     landing packs sand that the last frame may no longer show); with a radius
 
     A rollout whose last frame is not finite (it diverged) has inf for the three scalars, and
-    inf fronts and neighbours from the first non-finite frame on.
+    inf fronts and neighbours in every non-finite frame.
     """
     frames = float_array("positions", positions, "(S, N, D)", 3)
     keep = particle_mask(mask, frames.shape[1])
@@ -243,11 +243,11 @@ def deposit(
         figures["pile_base"] = pile_base(last, keep, floor, nonfinite="inf")
     figures.update(front_x_p1=fronts[:, 0], front_x_p99=fronts[:, 1])
     if radius is not None:
-        packed = np.full(len(frames), math.inf)
-        for i, frame in enumerate(frames[:, keep]):
-            if not np.isfinite(frame).all():
-                break  # diverged: this frame and every later one count as inf
-            packed[i] = mean_neighbours(frame, radius, bounds, periodic)
+        selected = frames[:, keep]
+        finite = finite_frames("positions", selected, "inf")
+        packed = np.full(len(frames), math.inf)  # a non-finite frame, as for the fronts
+        for i in np.flatnonzero(finite):
+            packed[i] = mean_neighbours(selected[i], radius, bounds, periodic)
         figures["neighbours"] = float(packed[-1])
         figures["neighbours_by_frame"] = packed
     return figures
