@@ -40,8 +40,9 @@ Where the sand stops (gns.deposit), from the last frame's non-kinematic particle
 runout (the 99th minus the 1st percentile of x), pile height (the 99th percentile of y above the
 box's floor) and the mean neighbour count within the dataset's connectivity radius; the table
 has each over the ground truth's (runout_ratio, height_ratio, density_ratio: per trajectory,
-then the mean), table.json the values per trajectory, the truth's own, and the fronts (the 1st
-and 99th percentile of x) of every frame. With rest_steps, every learned row also holds each
+then the mean) and density_ratio_max (the density ratio at its worst frame), table.json the
+values per trajectory, the truth's own, and the fronts (the 1st and 99th percentile of x) of
+every frame. With rest_steps, every learned row also holds each
 trajectory's last frame still and rolls out from it (gns.evaluate.rest_test).
 
 A learned rollout that diverges (gns.rollout stops it) scores inf from there on: its row says

@@ -84,10 +84,16 @@ def _deposit_sentence(
         return text
 
     def ratios(row: Row) -> list[tuple[str, str]]:
-        """(figure, "0.43x") for each finite ratio of the row."""
+        """(figure, "0.43x") for each finite ratio of the row; the density's with its worst
+        frame's, "8.5x, 9.1x at its worst frame", as a landing packs more than a pile that
+        has relaxed shows."""
         named = {"runout": "runout_ratio", "height": "height_ratio", "density": "density_ratio"}
         values = [(name, _finite(row, key)) for name, key in named.items()]
-        return [(name, _ratio_text(v)) for name, v in values if v is not None]
+        out = [(name, _ratio_text(v)) for name, v in values if v is not None]
+        worst = _finite(row, "density_ratio_max")
+        if worst is not None and out and out[-1][0] == "density":
+            out[-1] = ("density", f"{out[-1][1]}, {_ratio_text(worst)} at its worst frame")
+        return out
 
     ours = ratios(best)
     sentence = (

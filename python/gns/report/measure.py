@@ -49,8 +49,9 @@ def score(
     per-frame MSE; "frames", "ot": the evaluated frames and their W2^2}, and the deposit of
     the last frame (gns.deposit.deposit and deposit_ratios): "runout", "pile_height" (with a
     floor), "neighbours" (with a radius), "runout_ratio", "height_ratio", "density_ratio" (over
-    the truth's), and the fronts "front_x_p1", "front_x_p99" (S,). NaN in `predicted` (a
-    diverged rollout, padded) scores inf, never a finite number."""
+    the truth's), "density_ratio_max" (the worst frame's), and the fronts "front_x_p1",
+    "front_x_p99" (S,). NaN in `predicted` (a diverged rollout, padded) scores inf, never a
+    finite number."""
     m = evaluate_rollout(
         predicted,
         truth,

@@ -24,8 +24,9 @@ from gns.report.measure import METRICS, TIMING_PARTS, Row, _count
 
 __all__ = ["DEPOSIT_COLUMNS", "table_columns"]
 
-# The deposit's columns (gns.deposit.deposit_ratios): the last frame's over the truth's.
-DEPOSIT_COLUMNS = ("runout_ratio", "height_ratio", "density_ratio")
+# The deposit's columns (gns.deposit.deposit_ratios): the last frame's over the truth's, and
+# the density's ratio at its worst frame (a landing packs sand that the last frame may not show).
+DEPOSIT_COLUMNS = ("runout_ratio", "height_ratio", "density_ratio", "density_ratio_max")
 
 
 # ------------------------------------------------------------------------------------- table
@@ -33,7 +34,8 @@ DEPOSIT_COLUMNS = ("runout_ratio", "height_ratio", "density_ratio")
 
 def table_columns(horizons: Sequence[int | None], steps: int) -> list[str]:
     """The table's columns; horizons longer than the rollout (steps frames) have none. The
-    deposit's ratios are of the last frame, so of the full horizon."""
+    deposit's ratios are of the last frame (density_ratio_max: of every frame), so of the full
+    horizon."""
     keys = [
         f"{metric}@{'full' if h is None else h}"
         for metric in METRICS
@@ -398,6 +400,9 @@ def _method_lines(context: dict[str, Any]) -> list[str]:
         "farthest out on either side do not count). Height: the 99th percentile of y minus the "
         f"floor, the box's lower y bound {context['floor']:g}. Density: the mean number of "
         f"other particles within the connectivity radius R = {context['radius']:g}. "
+        "Density ratio max: the same ratio in every predicted frame against the truth's "
+        "frame, its largest per trajectory (how far a landing packs the sand before the pile "
+        "relaxes; inf from a diverged frame on), then the mean over trajectories. "
         "Percentiles interpolate linearly between sorted values. table.json's `deposits` "
         "holds every row's and the ground truth's values per trajectory and the fronts (the "
         "1st and 99th percentile of x) of every frame, drawn for the first trajectory in "
