@@ -1,5 +1,5 @@
 """What a particle model (2D or 3D) sees and does: reach, floor, landing, rest, fall, spread,
-collapse, runout (docs/probes.md).
+squeeze, collapse, runout (docs/probes.md).
 
     python scripts/probe.py reach MODEL [MODEL ...] [--untrained] [--variant KEY=VALUE ...]
     python scripts/probe.py floor MODEL [MODEL ...] [--shift 1.0]
@@ -11,6 +11,8 @@ collapse, runout (docs/probes.md).
         [--heights 1 2 3 4 6 8 12 20] [--noise-draws K]
     python scripts/probe.py spread MODEL [MODEL ...] --data DATA [--split test] [--flowing 0.3]
         [--near-floor GAP [--start-speed 0.5]]
+    python scripts/probe.py squeeze MODEL [MODEL ...] --data DATA [--split test] [--factor 0.9]
+        [--random STD] [--every 10]
     python scripts/probe.py collapse MODEL [MODEL ...] [--heights 0.05 0.1 0.2 0.3]
     python scripts/probe.py runout MODEL [MODEL ...] [--angles 20 30 45] [--gap 0.019]
 
@@ -64,6 +66,11 @@ tan(--friction-angle) as the context where the model takes one.
   stops short of the truth's runout. --near-floor GAP keeps only the trajectories whose block
   starts at most GAP above the floor, slower than --start-speed m/s (a short drop, then a
   collapse under its own weight), e.g. in the training data: `--split train`.
+- squeeze: every --every steps of each trajectory, the truth's input frames shifted alike in
+  every frame (velocities kept): the sand squeezed towards the floor (heights times --factor)
+  or, with --random STD, each particle moved at random; the share of the shift the model
+  undoes in one step (probes.shift_undone), by step with the truth's mean speed. Does a model
+  restore the packing a rollout squeezes out of its sand (above 0), or keep it (0)?
 - collapse: blocks --width wide and --heights high standing at rest on the floor, friction
   angle --friction-angle, run by the reference MPM (the sand-taichi preset's resolution and
   box); the launch of `spread` one step at a time from the MPM's frames. A block taller than
@@ -476,6 +483,58 @@ def spread(args) -> None:
         )
 
 
+def squeeze(args) -> None:
+    dataset = gns.data.open_dataset(args.data, args.split)
+    what = (
+        f"a random shift of std {args.random:g} per particle and axis (seeded)"
+        if args.random
+        else f"heights above the floor times {args.factor:g}"
+    )
+    print(
+        f"every {args.every}th step of each {args.split} trajectory, the truth's input frames "
+        f"shifted alike ({what}; velocities kept): the share of the shift the model undoes in "
+        "one step (1: puts the sand back; 0: keeps it where it was put); mean over "
+        "trajectories (their range), by the step's truth speed"
+    )
+    print("| model | step | speed (m/s) | undone |")
+    print("|---|---|---|---|")
+    for name in args.models:
+        simulator = gns.load_simulator(name).eval()
+        if not args.random and (not simulator.scene.walls or simulator.scene.bounds is None):
+            raise ValueError(f"{name} has no walls: there is no floor to squeeze towards")
+        stride = simulator.frame_stride_for(dataset.metadata)
+        history = simulator.config.model.velocity_history + 1
+        rows: dict[int, list[tuple[float, float]]] = {}
+        for trajectory in dataset:
+            trajectory = at_frame_stride(trajectory, stride)
+            types = torch.as_tensor(trajectory.particle_type)
+            free = ~simulator.scene.kinematic_mask(trajectory.particle_type)
+            context = trajectory.step_context
+            for t in range(history, len(trajectory.positions), args.every):
+                frames = trajectory.positions[t - history : t].transpose(1, 0, 2)
+                if args.random:
+                    generator = np.random.default_rng(t)
+                    shift = generator.normal(0.0, args.random, frames[:, -1].shape)
+                else:
+                    floor = simulator.scene.bounds[1][0]
+                    shift = probes.squeeze_toward_floor(frames[:, -1], floor, args.factor)
+                shift[~free] = 0.0  # the kinematic particles stay where they are
+                step_context = None if context is None else torch.as_tensor(context[t - 1 : t])
+                undone = probes.shift_undone(simulator, frames, shift, types, step_context)
+                speed = np.linalg.norm(frames[free, -1] - frames[free, -2], axis=1).mean()
+                rows.setdefault(t, []).append((undone, speed / simulator.scene.dt))
+        for t, values in rows.items():
+            undone, speed = np.array(values).T
+            print(
+                f"| {name} | {t} | {speed.mean():.2f} | {undone.mean():+.3f} "
+                f"({undone.min():+.3f} to {undone.max():+.3f}) |"
+            )
+        every = np.array([u for values in rows.values() for u, _ in values])
+        print(
+            f"| {name} | all | | {every.mean():+.3f} ({every.min():+.3f} to {every.max():+.3f}) |"
+        )
+
+
 def near_floor(simulator, trajectory, args) -> bool:
     """spread --near-floor: the trajectory starts within args.near_floor of the model's floor,
     slower than args.start_speed m/s (probes.starts_near_floor)."""
@@ -722,6 +781,14 @@ def main() -> None:
     )
     p.add_argument("--start-speed", type=float, default=0.5, help="m/s; with --near-floor")
     p.set_defaults(run=spread)
+    p = probes_.add_parser("squeeze")
+    p.add_argument("models", nargs="+")
+    p.add_argument("--data", required=True)
+    p.add_argument("--split", default="test")
+    p.add_argument("--factor", type=float, default=0.9, help="heights times this; default 0.9")
+    p.add_argument("--random", type=float, help="a random shift of this std instead")
+    p.add_argument("--every", type=int, default=10, help="steps between frames; default 10")
+    p.set_defaults(run=squeeze)
     p = probes_.add_parser("collapse")
     p.add_argument("models", nargs="+")
     p.add_argument("--heights", type=float, nargs="+", default=[0.05, 0.1, 0.2, 0.3])

@@ -172,6 +172,52 @@ def test_the_floor_probe_refuses_a_model_without_a_floor():
         probes.floor_shift(simulator, np.zeros((4, 6, 2)), 6, None)
 
 
+class Restorer:
+    """A stand-in that continues its input at constant velocity and moves each particle back
+    by `share` of its last input frame's offset from `reference` (N, D)."""
+
+    def __init__(self, reference: np.ndarray, share: float):
+        self.reference, self.share = torch.as_tensor(reference), share
+
+    def predict_positions(self, positions, particle_type, context=None):
+        last, before = positions[:, -1].double(), positions[:, -2].double()
+        return 2 * last - before - self.share * (last - self.reference)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.1, 1.0])
+def test_shift_undone_reads_the_share_of_a_squeeze_or_a_shuffle_put_back(share):
+    """The squeeze (heights above the floor times 0.9) and a random shift of 1e-3: the share
+    read is the stand-in's; had the shift reached the last frame only (a changed velocity),
+    a model at constant velocity would read -1, not 0."""
+    block = lattice((0.4, 0.45), (0.2, 0.2), SPACING)
+    history = probes.block_history(block, 6, G, last_velocity=-0.01)
+    types = torch.zeros(len(block), dtype=torch.long)
+    floor = 0.1
+    squeeze = probes.squeeze_toward_floor(history[:, -1], floor, 0.9)
+    squeezed = history[:, -1] + squeeze
+    np.testing.assert_allclose(squeezed[:, 0], history[:, -1, 0], rtol=0, atol=0)
+    np.testing.assert_allclose(squeezed[:, 1] - floor, 0.9 * (history[:, -1, 1] - floor))
+    shuffle = np.random.default_rng(0).normal(0.0, 1e-3, block.shape)
+    stand_in = Restorer(history[:, -1], share)
+    for shift in (squeeze, shuffle):
+        # float32 positions near 0.5 against shifts of 1e-3: round-off below 1e-4 of them
+        assert probes.shift_undone(stand_in, history, shift, types) == pytest.approx(
+            share, abs=1e-3
+        )
+
+
+def test_shift_undone_refuses_a_shift_it_cannot_read():
+    history = probes.block_history(lattice((0.4, 0.45), (0.05, 0.05), SPACING), 6, G)
+    types = torch.zeros(len(history), dtype=torch.long)
+    stand_in = Restorer(history[:, -1], 0.5)
+    with pytest.raises(ValueError, match=r"shift must be \(36, 2\), got \(36, 3\)"):
+        probes.shift_undone(stand_in, history, np.ones((36, 3)), types)
+    with pytest.raises(ValueError, match="not all zero, got a squared size of 0.0"):
+        probes.shift_undone(stand_in, history, np.zeros((36, 2)), types)
+    with pytest.raises(ValueError, match="factor must be a finite number > 0, got 0.0"):
+        probes.squeeze_toward_floor(history[:, -1], 0.1, 0.0)
+
+
 def falling_block(frames: int, landing: int) -> np.ndarray:
     """(frames, N, 2): a 16 x 16 lattice falling at g from rest that stops dead at frame
     `landing` and stays there."""
@@ -604,6 +650,16 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
         "100",
     )
     assert near == spread
+    for shift in ([], ["--random", "1e-3"]):
+        squeeze = run_probe("squeeze", str(run), "--data", str(native), "--every", "4", *shift)
+        assert squeeze[1] == "| model | step | speed (m/s) | undone |", squeeze
+        number = r"[+-]\d+\.\d{3}"
+        cells = rf"\d+ \| \d+\.\d\d \| {number} \({number} to {number}\)"
+        steps = squeeze[3:-1]
+        assert steps and all(
+            re.fullmatch(rf"\| {re.escape(str(run))} \| {cells} \|", line) for line in steps
+        ), squeeze
+        assert squeeze[-1].startswith(f"| {run} | all | | "), squeeze
 
 
 def test_the_collapse_probe_reads_a_taller_block_collapsing_harder_in_the_mpm():

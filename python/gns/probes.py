@@ -9,6 +9,9 @@ scripts/probe.py run them):
     kick_removed      how much of a kick to one particle's last input velocity in that
                       block a model undoes in one step: 1 where it takes the kick for
                       noise (as training's target does), 0 where it takes it for motion
+    shift_undone      how much of a shift of the particles (the same in every input frame,
+                      e.g. squeeze_toward_floor's) a model undoes in one step: whether it
+                      restores the packing a rollout has lost
     reach_by_hop      how strongly a particle's prediction depends on the inputs of the
                       particles k graph hops away: how far the network carries information
     floor_shift       how much moving the floor 1 m away changes the predictions, by height
@@ -70,7 +73,9 @@ __all__ = [
     "probe_inputs",
     "reach_by_hop",
     "rest_by_height",
+    "shift_undone",
     "spreading",
+    "squeeze_toward_floor",
     "starts_near_floor",
     "surface",
     "untrained_copy",
@@ -228,6 +233,50 @@ def kick_removed(
             pair.append(float(-change / (sign * kick)))
         removed[name] = (pair[0], pair[1])
     return removed
+
+
+def squeeze_toward_floor(frame: np.ndarray, floor: float, factor: float) -> np.ndarray:
+    """(N, D) the shift that squeezes `frame` (N, D) vertically towards `floor`: each
+    particle's height above it (y, axis 1) times `factor` (> 0; below 1 packs the sand closer,
+    as a rollout that loses volume does)."""
+    if not (math.isfinite(factor) and factor > 0):
+        raise ValueError(f"factor must be a finite number > 0, got {factor}")
+    frame = np.asarray(frame, dtype=np.float64)
+    shift = np.zeros_like(frame)
+    shift[:, 1] = (factor - 1.0) * (frame[:, 1] - floor)
+    return shift
+
+
+def shift_undone(
+    simulator: Any,
+    history: np.ndarray,
+    shift: np.ndarray,
+    particle_type: Tensor,
+    context: Tensor | None = None,
+) -> float:
+    """How much of `shift` (N, D), added to every input frame of `history` (N, C + 1, D) (the
+    particles moved, their velocities kept), the model undoes in one step: with p and p' its
+    predictions without and with the shift, -sum((p' - p - shift) . shift) / sum(shift .
+    shift). 1 puts the particles back where they were; 0 carries the shift along, as a model
+    that reads only velocities does. A model that restores the data's packing when a rollout
+    squeezes its sand (squeeze_toward_floor) reads above 0."""
+    history = np.asarray(history, dtype=np.float64)
+    shift = np.asarray(shift, dtype=np.float64)
+    if shift.shape != history[:, -1].shape:
+        raise ValueError(f"shift must be {history[:, -1].shape}, got {shift.shape}")
+    size = float((shift * shift).sum())
+    if not (math.isfinite(size) and size > 0):
+        raise ValueError(f"shift must be finite and not all zero, got a squared size of {size}")
+    with torch.no_grad():
+        p, moved = (
+            simulator.predict_positions(
+                torch.tensor(x, dtype=torch.float32), particle_type, context=context
+            )
+            .double()
+            .numpy()
+            for x in (history, history + shift[:, None])
+        )
+    return float(-((moved - p - shift) * shift).sum() / size)
 
 
 # ---------------------------------------------------------------------------------- reach
