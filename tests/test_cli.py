@@ -302,6 +302,7 @@ def test_eval_and_report_help_say_what_the_deposit_figures_are(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "--rest-steps K" in text and "constant-velocity and static baselines" in text
     assert "height ratio, the 99th percentile of y above the box's floor" in text
+    assert "density ratio max, that ratio at its worst frame" in text
 
 
 # ------------------------------------------------------------------- with a trained run
