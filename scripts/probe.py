@@ -484,6 +484,10 @@ def spread(args) -> None:
 
 
 def squeeze(args) -> None:
+    if args.every < 1:
+        raise ValueError(f"--every must be at least 1 step, got {args.every}")
+    if args.random is not None and not (math.isfinite(args.random) and args.random > 0):
+        raise ValueError(f"--random must be a finite std > 0, got {args.random}")
     dataset = gns.data.open_dataset(args.data, args.split)
     what = (
         f"a random shift of std {args.random:g} per particle and axis (seeded)"
@@ -491,7 +495,7 @@ def squeeze(args) -> None:
         else f"heights above the floor times {args.factor:g}"
     )
     print(
-        f"every {args.every}th step of each {args.split} trajectory, the truth's input frames "
+        f"every {args.every} steps of each {args.split} trajectory, the truth's input frames "
         f"shifted alike ({what}; velocities kept): the share of the shift the model undoes in "
         "one step (1: puts the sand back; 0: keeps it where it was put); mean over "
         "trajectories (their range), by the step's truth speed"

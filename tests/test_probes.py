@@ -662,6 +662,23 @@ def test_the_probe_script_runs_each_probe_on_a_trained_model(strided):
         assert squeeze[-1].startswith(f"| {run} | all | | "), squeeze
 
 
+@pytest.mark.parametrize(
+    "option, message",
+    [
+        (["--every", "0"], "--every must be at least 1 step, got 0"),
+        (["--random", "-0.001"], "--random must be a finite std > 0, got -0.001"),
+    ],
+)
+def test_the_squeeze_probe_refuses_what_it_cannot_step_by(strided, option, message):
+    run, native, _ = strided
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), "squeeze", str(run), "--data", str(native), *option],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode != 0 and f"probe.py squeeze: {message}" in done.stderr, done.stderr
+
+
 def test_the_collapse_probe_reads_a_taller_block_collapsing_harder_in_the_mpm():
     """The physics is the oracle: sand (30 degrees) standing 0.2 high on a 0.2 base is past its
     angle of repose and collapses sideways; 0.05 high, it hardly moves."""

@@ -42,8 +42,8 @@ box's floor) and the mean neighbour count within the dataset's connectivity radi
 has each over the ground truth's (runout_ratio, height_ratio, density_ratio: per trajectory,
 then the mean) and density_ratio_max (the density ratio at its worst frame), table.json the
 values per trajectory, the truth's own, and the fronts (the 1st and 99th percentile of x) of
-every frame. With rest_steps, every learned row also holds each
-trajectory's last frame still and rolls out from it (gns.evaluate.rest_test).
+every frame. With rest_steps, every learned row also holds each trajectory's last frame still
+and rolls out from it (gns.evaluate.rest_test).
 
 A learned rollout that diverges (gns.rollout stops it) scores inf from there on: its row says
 where (status, diverged_at_step), the figures mark its last finite point with an x, and the
