@@ -506,6 +506,7 @@ def squeeze(args) -> None:
         simulator = gns.load_simulator(name).eval()
         if not args.random and (not simulator.scene.walls or simulator.scene.bounds is None):
             raise ValueError(f"{name} has no walls: there is no floor to squeeze towards")
+        floor = None if args.random else simulator.scene.bounds[1][0]
         stride = simulator.frame_stride_for(dataset.metadata)
         history = simulator.config.model.velocity_history + 1
         rows: dict[int, list[tuple[float, float]]] = {}
@@ -520,7 +521,6 @@ def squeeze(args) -> None:
                     generator = np.random.default_rng(t)
                     shift = generator.normal(0.0, args.random, frames[:, -1].shape)
                 else:
-                    floor = simulator.scene.bounds[1][0]
                     shift = probes.squeeze_toward_floor(frames[:, -1], floor, args.factor)
                 shift[~free] = 0.0  # the kinematic particles stay where they are
                 step_context = None if context is None else torch.as_tensor(context[t - 1 : t])

@@ -88,11 +88,14 @@ def _deposit_sentence(
         frame's, "8.5x, 9.1x at its worst frame", as a landing packs more than a pile that
         has relaxed shows."""
         named = {"runout": "runout_ratio", "height": "height_ratio", "density": "density_ratio"}
-        values = [(name, _finite(row, key)) for name, key in named.items()]
-        out = [(name, _ratio_text(v)) for name, v in values if v is not None]
-        worst = _finite(row, "density_ratio_max")
-        if worst is not None and out and out[-1][0] == "density":
-            out[-1] = ("density", f"{out[-1][1]}, {_ratio_text(worst)} at its worst frame")
+        out = []
+        for name, key in named.items():
+            if (value := _finite(row, key)) is None:
+                continue
+            text = _ratio_text(value)
+            if name == "density" and (worst := _finite(row, "density_ratio_max")) is not None:
+                text += f", {_ratio_text(worst)} at its worst frame"
+            out.append((name, text))
         return out
 
     ours = ratios(best)
